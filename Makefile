@@ -1,0 +1,40 @@
+# polycc developer entry points. Every target sets up .venv itself on a fresh machine.
+PY ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+OUT ?= out/demo
+
+# Locally `make test` skips tests marked slow; CI (CI=true) runs everything.
+ifeq ($(CI),true)
+PYTEST_MARK :=
+else
+PYTEST_MARK := -m "not slow"
+endif
+PYTEST_ARGS ?= -n 2
+
+.PHONY: venv demo test test-all bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev,bench]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/polycc demo-scene $(OUT)/arena.ply
+	$(BIN)/polycc voxelize $(OUT)/arena.ply --voxel 0.05 -o $(OUT)/occupancy.npz
+
+test: $(STAMP)
+	$(BIN)/python -m pytest $(PYTEST_MARK) $(PYTEST_ARGS)
+
+test-all: $(STAMP)
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(BIN)/python bench/run_all.py
+
+clean:
+	rm -rf $(VENV) out build *.egg-info

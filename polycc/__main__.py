@@ -1,0 +1,5 @@
+import sys
+
+from polycc.cli import main
+
+sys.exit(main())
