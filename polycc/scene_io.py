@@ -154,7 +154,7 @@ def _ply_colors(v, names: list[str]) -> np.ndarray | None:
     if all(f"f_dc_{i}" in names for i in range(3)):
         dc = np.stack([np.asarray(v[f"f_dc_{i}"], np.float64) for i in range(3)], axis=1)
         rgb = np.clip(0.5 + SH_C0 * np.nan_to_num(dc), 0.0, 1.0) * 255.0
-        return rgb.astype(np.uint8)
+        return np.round(rgb).astype(np.uint8)
     if all(c in names for c in ("red", "green", "blue")):
         return np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
     return None
