@@ -1,0 +1,1 @@
+"""Host-side simulation: cffi builds of the firmware kernel sources and helpers."""
