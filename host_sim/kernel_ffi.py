@@ -1,0 +1,207 @@
+"""cffi (API mode) build of the on-board kernel: the same .c files the firmware compiles.
+
+Flags: ``-O2 -ffp-contract=off -fno-math-errno -std=c99`` plus the strict warning set.  The
+extension is built once per hash of (sources, flags, cffi version) under ``build/cffi/`` in a
+private temporary directory and moved into place with ``os.replace``, so concurrent pytest
+workers never see a half-written module.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import importlib.util
+import os
+import shutil
+import sys
+import sysconfig
+import tempfile
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from polycc.barrier import Params
+from polycc.errors import PolyccError
+from polycc.scene_layout import SCENE_FORMAT, PackedScene
+
+REPO = Path(__file__).resolve().parents[1]
+SRC = REPO / "firmware_app" / "src"
+KERNEL_SOURCES = [SRC / "polycc_kernel.c"]
+KERNEL_HEADERS = [SRC / "polycc_kernel.h", SRC / "polycc_scene_layout.h"]
+HOST_CFLAGS = ["-O2", "-std=c99", "-ffp-contract=off", "-fno-math-errno", "-Wall", "-Wextra", "-Wdouble-promotion",
+               "-Wconversion", "-Werror"]
+
+CDEF = """
+typedef struct polycc_plane { float nx, ny, nz, d; } polycc_plane_t;
+typedef struct polycc_poly {
+    uint16_t first; uint16_t count; float cx, cy, cz; float r_out; float inv_gamma; float r_in; uint8_t lead[8];
+} polycc_poly_t;
+typedef struct polycc_scene {
+    uint32_t format; uint32_t n_clusters; uint32_t n_polys; uint32_t n_planes; float coord_bound; float log_lmax;
+    const polycc_poly_t *clusters; const polycc_poly_t *polys; const polycc_plane_t *planes;
+} polycc_scene_t;
+typedef struct polycc_params { float kappa; float radius; float beta; float c_clf; float v_max; } polycc_params_t;
+typedef struct polycc_out {
+    float u[3]; float u_nom[3]; float psi; float grad[3]; uint32_t flags;
+} polycc_out_t;
+float polycc_exp(float x);
+float polycc_log(float x);
+uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *params, const float p[3],
+                        float *psi, float grad[3]);
+uint32_t polycc_step(const polycc_scene_t *scene, const polycc_params_t *params, const float x[3],
+                     const float goal[3], polycc_out_t *out);
+void polycc_host_step_batch(const polycc_scene_t *scene, const polycc_params_t *params, const float *x,
+                            const float *goal, size_t n, polycc_out_t *out);
+void polycc_host_exp_batch(const float *x, size_t n, float *y);
+void polycc_host_log_batch(const float *x, size_t n, float *y);
+"""
+
+# Host-only batch loops (not part of the firmware); they only call the kernel's public API.
+BATCH_SOURCE = """
+#include <stddef.h>
+#include "polycc_kernel.h"
+void polycc_host_step_batch(const polycc_scene_t *scene, const polycc_params_t *params, const float *x,
+                            const float *goal, size_t n, polycc_out_t *out)
+{
+    size_t i;
+    for (i = 0; i < n; ++i) {
+        (void)polycc_step(scene, params, x + 3 * i, goal + 3 * i, out + i);
+    }
+}
+void polycc_host_exp_batch(const float *x, size_t n, float *y)
+{
+    size_t i;
+    for (i = 0; i < n; ++i) {
+        y[i] = polycc_exp(x[i]);
+    }
+}
+void polycc_host_log_batch(const float *x, size_t n, float *y)
+{
+    size_t i;
+    for (i = 0; i < n; ++i) {
+        y[i] = polycc_log(x[i]);
+    }
+}
+"""
+
+OUT_DTYPE = np.dtype([("u", "<f4", 3), ("u_nom", "<f4", 3), ("psi", "<f4"), ("grad", "<f4", 3), ("flags", "<u4")])
+
+
+def source_hash(*parts: bytes) -> str:
+    h = hashlib.sha256()
+    for p in parts:
+        h.update(len(p).to_bytes(8, "little"))
+        h.update(p)
+    return h.hexdigest()[:16]
+
+
+def build_cffi(prefix: str, cdef: str, source: str, sources: list[Path], include_dirs: list[Path],
+               cflags: list[str], key_parts: list[bytes] = (), prepare=None):
+    """Build (once) and import a cffi API-mode extension; safe under concurrent pytest workers.
+
+    The module name is ``<prefix>_<hash>``, the hash covering the sources, ``key_parts``, cdef,
+    glue source, flags, cffi and Python versions; it is built in a private temporary directory
+    under ``build/cffi/`` and moved into place with ``os.replace``.  ``prepare(tmpdir)`` may
+    write extra inputs (for instance a generated header) before compiling and returns extra
+    include directories."""
+    import cffi
+
+    files = b"".join(p.name.encode() + p.read_bytes() for p in sources)
+    key = source_hash(files, *key_parts, cdef.encode(), source.encode(), " ".join(cflags).encode(),
+                      cffi.__version__.encode(), sys.version.encode())
+    name = f"{prefix}_{key}"
+    out_dir = REPO / "build" / "cffi"
+    suffix = sysconfig.get_config_var("EXT_SUFFIX") or ".so"
+    target = out_dir / f"{name}{suffix}"
+    if not target.exists():
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=out_dir))
+        try:
+            extra = list(prepare(tmp)) if prepare else []
+            ffi = cffi.FFI()
+            ffi.cdef(cdef)
+            ffi.set_source(name, source, sources=[str(p) for p in sources if p.suffix == ".c"],
+                           include_dirs=[str(d) for d in [*include_dirs, *extra]], extra_compile_args=cflags)
+            try:
+                built = Path(ffi.compile(tmpdir=str(tmp), verbose=False))
+            except Exception as exc:  # compiler missing or a warning under -Werror
+                raise PolyccError(f"building {prefix} for the host failed ({exc}); install gcc and python3-dev") from None
+            os.replace(built, target)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+    spec = importlib.util.spec_from_file_location(name, target,
+                                                  loader=importlib.machinery.ExtensionFileLoader(name, str(target)))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@lru_cache(maxsize=1)
+def load():
+    """Build (if needed) and import the kernel extension; returns the cffi ``lib``/``ffi`` module."""
+    return build_cffi("_polycc_kernel", CDEF, BATCH_SOURCE, KERNEL_SOURCES + KERNEL_HEADERS, [SRC], HOST_CFLAGS)
+
+
+@dataclass
+class HostScene:
+    """A ``polycc_scene_t`` built in host memory from a :class:`PackedScene` (keeps buffers alive)."""
+
+    packed: PackedScene
+    fmt: int = SCENE_FORMAT
+
+    def __post_init__(self):
+        m = load()
+        ffi = m.ffi
+        self._clusters = np.ascontiguousarray(self.packed.clusters)
+        self._polys = np.ascontiguousarray(self.packed.polys)
+        self._planes = np.ascontiguousarray(self.packed.planes)
+        self.c = ffi.new("polycc_scene_t *")
+        self.c.format = self.fmt
+        self.c.n_clusters = self.packed.n_clusters
+        self.c.n_polys = self.packed.n_polys
+        self.c.n_planes = self.packed.n_planes
+        self.c.coord_bound = float(self.packed.coord_bound)
+        self.c.log_lmax = float(self.packed.log_lmax)
+        self.c.clusters = ffi.cast("const polycc_poly_t *", ffi.from_buffer(self._clusters))
+        self.c.polys = ffi.cast("const polycc_poly_t *", ffi.from_buffer(self._polys))
+        self.c.planes = ffi.cast("const polycc_plane_t *", ffi.from_buffer(self._planes))
+
+
+def c_params(params: Params):
+    ffi = load().ffi
+    p = ffi.new("polycc_params_t *")
+    p.kappa, p.radius, p.beta, p.c_clf, p.v_max = (float(v) for v in params.f32())
+    return p
+
+
+def step_batch(scene: HostScene, params: Params, x: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """Run ``polycc_step`` for every row; returns a structured array (OUT_DTYPE)."""
+    m = load()
+    ffi = m.ffi
+    x = np.ascontiguousarray(np.asarray(x, np.float32).reshape(-1, 3))
+    goal = np.ascontiguousarray(np.broadcast_to(np.asarray(goal, np.float32).reshape(-1, 3), x.shape))
+    out = np.zeros(len(x), OUT_DTYPE)
+    assert OUT_DTYPE.itemsize == ffi.sizeof("polycc_out_t")
+    m.lib.polycc_host_step_batch(scene.c, c_params(params), ffi.cast("const float *", ffi.from_buffer(x)),
+                                 ffi.cast("const float *", ffi.from_buffer(goal)), len(x),
+                                 ffi.cast("polycc_out_t *", ffi.from_buffer(out)))
+    return out
+
+
+def _unary_batch(fn_name: str, x: np.ndarray) -> np.ndarray:
+    m = load()
+    ffi = m.ffi
+    x = np.ascontiguousarray(np.asarray(x, np.float32).ravel())
+    y = np.empty_like(x)
+    getattr(m.lib, fn_name)(ffi.cast("const float *", ffi.from_buffer(x)), len(x), ffi.cast("float *", ffi.from_buffer(y)))
+    return y
+
+
+def exp_batch(x: np.ndarray) -> np.ndarray:
+    return _unary_batch("polycc_host_exp_batch", x)
+
+
+def log_batch(x: np.ndarray) -> np.ndarray:
+    return _unary_batch("polycc_host_log_batch", x)

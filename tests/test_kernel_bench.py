@@ -1,0 +1,33 @@
+"""Smoke run of the cycle benchmark (bench/bench_kernel.py): it builds, emulates both kernels,
+checks the emulated results against the reference and writes its JSON."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+
+from test_kernel_bitexact import arm_or_skip
+
+
+@pytest.mark.slow
+@pytest.mark.arm
+def test_bench_quick(tmp_path):
+    arm_or_skip()
+    pytest.importorskip("unicorn")
+    pytest.importorskip("capstone")
+    from test_kernel_bitexact import REPO_BENCH
+
+    sys.path.insert(0, str(REPO_BENCH))
+    import bench_kernel
+
+    out = tmp_path / "bench.json"
+    assert bench_kernel.main(["--quick", "--out", str(out)]) == 0
+    res = json.loads(out.read_text())
+    rows = {r["scene"]: r for r in res["rows"]}
+    assert set(rows) == {"room10", "room30", "room50", "room100", "room150", "fill64k"}
+    assert res["stack_bytes"] <= 512
+    for name in ("room30", "room50", "room100", "room150", "fill64k"):
+        assert rows[name]["speedup_typical"][0] >= 10, name
+    assert rows["fill64k"]["flash_bytes"] <= 65536
