@@ -1,0 +1,123 @@
+"""`polycc verify OUT SCENE`: independent certification of a cover family (see polycc.verify)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy
+from polycc.console import console, progress_bar
+from polycc.errors import PolyccError
+from polycc.verify import VerifyReport, certify_all_levels, check_level, default_levels, read_family
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "verify",
+        help="independently certify a cover: every voxel and every splat ellipsoid covered (exit 0 = safe)",
+        description="Re-derive the occupied voxels and splat ellipsoids from SCENE and check the cover family "
+                    "in OUT without using the cover code: (a) all 8 corners of every occupied voxel inside one "
+                    "polytope, at the listed levels directly and at every level n = N..1 by a merge certificate; "
+                    "(b) points sampled on and inside every kept ellipsoid inside some polytope; (c) Monte Carlo "
+                    "conservativeness Vol(U H^n)/Vol(V+) with a 95%% confidence interval. Tolerances count against "
+                    "the cover. Exit 0 only if (a) and (b) hold; the last line holds the figures.",
+    )
+    p.add_argument("out", metavar="OUT", help="directory written by `polycc cover` (or its cover.npz)")
+    p.add_argument("scene", metavar="SCENE", help="the scene file the cover was made from")
+    add_scene_options(p)
+    v = p.add_argument_group("verify options")
+    v.add_argument("--levels", default="default", metavar="N1,N2,...|all|default",
+                   help="levels n checked directly with (a), (b), (c): a comma list, 'all' (every n, slow) or "
+                        "'default' = N,150,100,50,30,10,1 (default: %(default)s)")
+    v.add_argument("--all-levels-certificate", action=argparse.BooleanOptionalAction, default=True,
+                   help="also certify (a) at every level n = N..1 through the merge sequence (default: on)")
+    v.add_argument("--samples-per-ellipsoid", type=int, default=64, metavar="K",
+                   help="points sampled per ellipsoid for (b), at least 64 (default: %(default)s)")
+    v.add_argument("--min-samples", type=int, default=1_000_000, metavar="M",
+                   help="at least this many points in total per level for (b) (default: %(default)s)")
+    v.add_argument("--mc-samples", type=int, default=200_000, metavar="S",
+                   help="Monte Carlo samples per level for (c) (default: %(default)s)")
+    v.add_argument("--seed", type=int, default=0, help="random seed for (b) and (c) (default: %(default)s)")
+    v.add_argument("--report", metavar="FILE.json", help="also write the figures as JSON (default: none)")
+    p.set_defaults(func=run)
+
+
+def _levels(text: str, N: int) -> list[int]:
+    if text == "default":
+        return default_levels(N)
+    if text == "all":
+        return list(range(N, 0, -1))
+    try:
+        lv = sorted({int(x) for x in text.split(",") if x.strip()}, reverse=True)
+    except ValueError:
+        raise PolyccError(f"--levels {text!r}: expected 'all', 'default' or whole numbers like 150,50,10") from None
+    bad = [n for n in lv if not 1 <= n <= N]
+    if bad:
+        raise PolyccError(f"--levels: {bad} outside 1..{N}, the levels this cover holds")
+    return lv
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.samples_per_ellipsoid < 64:
+        raise PolyccError(f"--samples-per-ellipsoid {args.samples_per_ellipsoid}: must be at least 64")
+    path = Path(args.out)
+    try:
+        fam = read_family(path)
+    except FileNotFoundError:
+        raise PolyccError(f"{path}: no cover.npz there; make it with `polycc cover SCENE -o {path}`") from None
+    except (OSError, ValueError, KeyError) as exc:
+        raise PolyccError(f"{path}: not a readable cover family ({exc}); re-create it with `polycc cover`") from None
+    N = fam.n_leaves
+    levels = _levels(args.levels, N)
+    scene, grid = load_scene_and_occupancy(args.scene, args)
+    idx = np.asarray(grid.indices, np.int64)
+    rep = VerifyReport(voxels=len(idx))
+    rep.grid_matches_cover = bool(
+        grid.voxel_size == fam.g and np.array_equal(grid.origin, fam.origin) and np.array_equal(idx, fam.grid_indices))
+    if not rep.grid_matches_cover:
+        console.print("[yellow]note: the voxels of SCENE with these options differ from the ones the cover was built "
+                      "from; pass the same scene options as to `polycc cover`[/yellow]")
+    t0 = time.perf_counter()
+    if args.all_levels_certificate and N > 1:
+        with progress_bar("(a) certificate, every level", N - 1) as update:
+            fails = certify_all_levels(fam, idx, progress=update)
+        rep.certificate_levels = N
+        rep.certificate_failures = [{"n": n, "uncovered_voxels": u} for n, u in fails]
+    rng = np.random.default_rng(args.seed)
+    ell = scene.ellipsoids
+    centers, axes = ell.centers, ell.axes()
+    with progress_bar("(a)(b)(c) direct checks", len(levels)) as update:
+        for k, n in enumerate(levels):
+            rep.levels.append(check_level(fam, n, idx, centers, axes, args.samples_per_ellipsoid, args.min_samples,
+                                          args.mc_samples, rng))
+            update(k + 1)
+    elapsed = time.perf_counter() - t0
+
+    from rich.table import Table
+
+    t = Table(title=f"polycc verify: {path}", header_style="bold")
+    for h in ("n", "half-planes", "voxels checked", "uncovered voxels", "points sampled", "uncovered points",
+              "conservativeness (95% CI)"):
+        t.add_column(h, justify="right")
+    for l in rep.levels:
+        t.add_row(str(l.n), f"{l.halfplanes:,}", f"{l.voxels_checked:,}", str(l.voxels_uncovered),
+                  f"{l.points_sampled:,}", str(l.points_uncovered),
+                  f"{l.conservativeness:.3f} +/- {l.conservativeness_ci:.3f}")
+    console.print(t)
+    if rep.certificate_failures:
+        console.print(f"[red]certificate failed at levels {[f['n'] for f in rep.certificate_failures][:20]}[/red]")
+    if args.report:
+        Path(args.report).write_text(json.dumps({**rep.as_dict(), "time_s": elapsed}, indent=2))
+    vox = sum(l.voxels_checked for l in rep.levels)
+    pts = sum(l.points_sampled for l in rep.levels)
+    unv = sum(l.voxels_uncovered for l in rep.levels) + sum(max(f["uncovered_voxels"], 1) for f in rep.certificate_failures)
+    unp = sum(l.points_uncovered for l in rep.levels)
+    cons = " ".join(f"n={l.n}:{l.conservativeness:.3f}+/-{l.conservativeness_ci:.3f}" for l in rep.levels)
+    print(f"verify: {'PASS' if rep.ok else 'FAIL'} | levels checked directly {len(rep.levels)}, by certificate "
+          f"{rep.certificate_levels} | voxels checked {vox:,} | points sampled {pts:,} | uncovered voxels {unv:,} "
+          f"points {unp:,} | conservativeness (95% CI) {cons}")
+    return 0 if rep.ok else 1
