@@ -1,0 +1,143 @@
+"""Benchmark of `polycc build` (budgets, reduction, quantization), issue "polycc build".
+
+For the arena of real captures and the demo arena, at 8, 16, 32 and 64 KiB: n, half-planes,
+bytes per half-plane, conservativeness and modelled on-board microseconds, next to a
+"paper-faithful" storage at the same budget (qhull's triangle facets unmerged, float32
+n and d per plane, no reduction: the largest n whose planes fit). Wasted volume is
+Vol(union H) - Vol(V+). Also times `polycc build` end to end on the 1.5M-splat room.
+
+    python bench/bench_build.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import CACHE, SCENES, print_table, write_json  # noqa: E402
+
+BUDGETS_KB = (8, 16, 32, 64)
+PLANE_BYTES_PAPER = 16
+
+
+def arena_ply(name: str) -> Path:
+    from polycc.arenas import capture_arena, tiled_room
+    from polycc.demo_scene import make_demo_arena
+    from polycc.ply_write import write_gaussian_ply
+
+    path = CACHE / f"{name}.ply"
+    if not path.exists():
+        CACHE.mkdir(parents=True, exist_ok=True)
+        ell = {"demo_arena": lambda: make_demo_arena(0), "capture_arena": lambda: capture_arena(SCENES),
+               "tiled_room": lambda: tiled_room(SCENES)}[name]()
+        tmp = path.with_suffix(".tmp.ply")
+        write_gaussian_ply(tmp, ell)
+        tmp.replace(path)
+    return path
+
+
+def paper_faithful(family, budget_bytes: int, occ_vol: float, samples: int):
+    """Largest n whose unmerged triangle facets (float32 n, d) fit; its wasted volume."""
+    from polycc.union_volume import union_volume
+
+    tri = np.array([len(ConvexHull(family.vertices[family.vertex_ptr[k]:family.vertex_ptr[k + 1]]).simplices)
+                    for k in range(len(family.plane_ptr) - 1)])
+    best = None
+    N = family.n_max
+    lo, hi = 1, N
+    def fits(n):
+        nodes = family.active_nodes(n)
+        return 28 + n * 28 + tri[nodes].sum() * PLANE_BYTES_PAPER <= budget_bytes
+    if not fits(1):
+        return None
+    while lo < hi:  # triangle counts grow with n almost monotonically; binary search
+        mid = (lo + hi + 1) // 2
+        if fits(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    n = lo
+    polys = family.materialise(n)
+    boxes = [(p.vertices.min(0), p.vertices.max(0)) for p in polys]
+    vol, ci = union_volume([p.halfplanes for p in polys], boxes, samples=samples)
+    nodes = family.active_nodes(n)
+    best = {"n": n, "halfplanes": int(tri[nodes].sum()), "conservativeness": vol / occ_vol, "wasted_m3": vol - occ_vol}
+    return best
+
+
+def table_for(name: str, samples: int) -> list[dict]:
+    from polycc import cycle_model
+    from polycc.budget import Budget, select
+    from polycc.cover import build_cover
+    from polycc.occupancy import voxelize
+    from polycc.scene import load_scene
+
+    scene = load_scene(arena_ply(name))
+    occ = voxelize(scene.ellipsoids, 0.05)
+    t = time.perf_counter()
+    family = build_cover(occ)
+    t_cover = time.perf_counter() - t
+    occ_vol = occ.volume()
+    rows = []
+    for kb in BUDGETS_KB:
+        t = time.perf_counter()
+        best, _, binding = select(family, Budget(kb * 1024), mc_samples=samples)
+        us = cycle_model.estimate_us(best.packed)
+        pf = paper_faithful(family, kb * 1024, occ_vol, samples)
+        rows.append({
+            "scene": name, "budget_kb": kb, "n": best.n, "halfplanes": best.n_planes,
+            "bytes_per_halfplane": best.bytes / best.n_planes, "conservativeness": best.conservativeness,
+            "ci95": best.conservativeness_ci, "wasted_m3": best.union_volume - occ_vol,
+            "typical_us": us["typical_us"], "worst_us": us["worst_us"], "binding": binding,
+            "select_s": time.perf_counter() - t, "cover_s": t_cover,
+            "paper_n": pf["n"] if pf else None, "paper_halfplanes": pf["halfplanes"] if pf else None,
+            "paper_conservativeness": pf["conservativeness"] if pf else None,
+            "paper_wasted_m3": pf["wasted_m3"] if pf else None,
+        })
+    return rows
+
+
+def end_to_end(quick: bool) -> dict:
+    ply = arena_ply("capture_arena" if quick else "tiled_room")
+    out = CACHE / "build_e2e"
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "polycc", "build", str(ply), "--flash-kb", "64", "-o", str(out)],
+                   check=True, capture_output=True)
+    return {"scene": ply.name, "seconds": time.perf_counter() - t, "target_s": 90.0}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer Monte Carlo samples, small end-to-end scene")
+    args = ap.parse_args()
+    samples = 30_000 if args.quick else 200_000
+    rows = []
+    for name in ("capture_arena", "demo_arena"):
+        rows += table_for(name, samples)
+    print_table(
+        "polycc build vs paper-faithful storage (float32 n, d per triangle facet, no reduction), g = 5 cm",
+        ["scene", "KiB", "n", "half-planes", "B/half-plane", "conservativeness", "wasted m^3", "typ us", "worst us",
+         "binding", "paper n", "paper planes", "paper cons.", "paper wasted m^3", "wasted ratio"],
+        [[r["scene"], r["budget_kb"], r["n"], r["halfplanes"], round(r["bytes_per_halfplane"], 2),
+          round(r["conservativeness"], 3), round(r["wasted_m3"], 4), round(r["typical_us"], 1), round(r["worst_us"], 1),
+          r["binding"], r["paper_n"], r["paper_halfplanes"],
+          round(r["paper_conservativeness"], 3) if r["paper_conservativeness"] else "-",
+          round(r["paper_wasted_m3"], 4) if r["paper_wasted_m3"] is not None else "-",
+          f"{r['paper_wasted_m3'] / max(r['wasted_m3'], 1e-12):.2f}x" if r["paper_wasted_m3"] is not None else "-"]
+         for r in rows],
+    )
+    e2e = end_to_end(args.quick)
+    print_table("polycc build end to end, --flash-kb 64", ["scene", "seconds", "target s"],
+                [[e2e["scene"], round(e2e["seconds"], 1), e2e["target_s"]]])
+    write_json("build", {"rows": rows, "end_to_end": e2e})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""`polycc build SCENE --flash-kb N -o OUT`: scene -> occupancy -> cover -> budget -> C header."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from polycc import cycle_model
+from polycc.budget import Budget, select
+from polycc.codegen import write_outputs
+from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy, print_summary
+from polycc.console import console, progress_bar
+from polycc.cover import DEFAULT_MERGE_COST, build_cover
+from polycc.errors import PolyccError
+from polycc.merge import MERGE_COSTS
+from polycc.reduce import polytope_vertices
+from polycc.report_plot import write_report
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "build",
+        help="build the on-board C header (polytopes.h) of a scene under flash/compute budgets",
+        description="Read a splat scene, voxelize it exactly, cover it with PolyMerge polytopes, pick the least "
+                    "conservative cover H^n that fits the budgets after outward plane reduction and float32 "
+                    "rounding, and write OUT/polytopes.h, OUT/manifest.json, OUT/cover.npz and OUT/report.png.",
+    )
+    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply or .splat file")
+    p.add_argument("-o", "--output", default="out", metavar="OUT", help="output folder (default: %(default)s)")
+    p.add_argument("--flash-kb", type=float, default=64.0, metavar="N",
+                   help="flash budget for all generated constant data, KiB (1 KiB = 1024 bytes) (default: %(default)s)")
+    p.add_argument("--max-halfplanes", type=int, default=None, metavar="M",
+                   help="cap on the total number of stored half-planes, bounding on-board compute (default: no cap)")
+    p.add_argument("--rate-hz", type=float, default=None, metavar="R",
+                   help="derive a half-plane cap from the kernel's Cortex-M4 cycle model so the worst-case "
+                        f"evaluation fits in --cpu-share of a 168 MHz CPU at R Hz (default: not used)")
+    p.add_argument("--cpu-share", type=float, default=cycle_model.DEFAULT_CPU_SHARE, metavar="F",
+                   help="fraction of the CPU the filter may use with --rate-hz, 0..1 (default: %(default)s)")
+    p.add_argument("--kappa", type=float, default=100.0, metavar="K",
+                   help="soft-min/soft-max sharpness recorded in the header, 1/m (default: %(default)s, as in the paper)")
+    p.add_argument("--neighborhood", type=int, default=1, metavar="B",
+                   help="cluster radius b in voxels (L-infinity), Eq. 10 (default: %(default)s)")
+    p.add_argument("--merge-cost", choices=sorted(MERGE_COSTS), default=DEFAULT_MERGE_COST,
+                   help="merge cost: 'paper' = W of the union (Eq. 13); see `polycc cover --help` (default: %(default)s)")
+    p.add_argument("--mc-samples", type=int, default=100_000, metavar="S",
+                   help="Monte Carlo samples per candidate for conservativeness (default: %(default)s)")
+    add_scene_options(p)
+    p.set_defaults(func=run)
+
+
+def _budget(args) -> Budget:
+    if not (args.flash_kb > 0):
+        raise PolyccError(f"--flash-kb {args.flash_kb}: must be a positive size in KiB")
+    if args.max_halfplanes is not None and args.max_halfplanes < 1:
+        raise PolyccError(f"--max-halfplanes {args.max_halfplanes}: must be at least 1")
+    rate_cycles = None
+    if args.rate_hz is not None:
+        if not (args.rate_hz > 0) or not (0 < args.cpu_share <= 1):
+            raise PolyccError("--rate-hz must be > 0 Hz and --cpu-share in (0, 1]")
+        rate_cycles = cycle_model.cycle_budget(args.rate_hz, args.cpu_share)
+    return Budget(int(args.flash_kb * 1024), args.max_halfplanes, rate_cycles)
+
+
+def run(args: argparse.Namespace) -> int:
+    t_all = time.perf_counter()
+    budget = _budget(args)
+    out = Path(args.output)
+    scene, occ = load_scene_and_occupancy(args.scene, args)
+    t = time.perf_counter()
+    with console.status("cover: clusters, set cover, merging"):
+        family = build_cover(occ, b=args.neighborhood, cost=args.merge_cost)
+    t_cover = time.perf_counter() - t
+    out.mkdir(parents=True, exist_ok=True)
+    family.meta.update({"scene_sha256": scene.sha256})
+    family.save(out / "cover.npz")
+
+    t = time.perf_counter()
+    with progress_bar("budget: reduce, quantize, measure candidates", 1) as update:
+        best, cands, binding = select(family, budget, mc_samples=args.mc_samples, progress=lambda d, n: update(d / n))
+    t_budget = time.perf_counter() - t
+    us = cycle_model.estimate_us(best.packed)
+
+    opts = {
+        "sigma": args.sigma, "min_opacity": args.min_opacity, "transform": args.transform, "scale": args.scale,
+        "crop": list(args.crop) if args.crop else None, "drop_invalid": args.drop_invalid, "voxel": args.voxel,
+        "min_splats_per_voxel": args.min_splats_per_voxel, "flash_kb": args.flash_kb,
+        "max_halfplanes": args.max_halfplanes, "rate_hz": args.rate_hz, "cpu_share": args.cpu_share,
+        "kappa": args.kappa, "neighborhood": args.neighborhood, "merge_cost": args.merge_cost,
+        "mc_samples": args.mc_samples,
+    }
+    cons_text = f"{best.conservativeness:.3f} +- {best.conservativeness_ci:.3f} (95% CI)"
+    stats = {
+        "splats_read": scene.stats.read, "splats_kept": scene.stats.kept, "scene_stats": scene.stats.as_dict(),
+        "voxels": len(occ), "voxel_size_m": occ.voxel_size, "occupied_volume_m3": occ.volume(),
+        "n_subcover": family.n_max, "n": best.n, "halfplanes": best.n_planes,
+        "halfplanes_before_reduction": best.planes_before, "halfplanes_dropped": best.dropped,
+        "bytes": best.bytes, "budget_bytes": budget.flash_bytes, "bytes_per_halfplane": best.bytes / best.n_planes,
+        "max_halfplanes": budget.capacity(best.n), "binding_budget": binding,
+        "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
+        "union_volume_m3": best.union_volume, "modelled_us": us,
+        "candidates": [{"n": c.n, "halfplanes": c.n_planes, "dropped": c.dropped, "bytes": c.bytes,
+                        "conservativeness": c.conservativeness, "ci95": c.conservativeness_ci} for c in cands],
+    }
+    transform = None
+    if args.transform or args.scale:
+        transform = scene.options.world_matrix().tolist()
+    meta = {
+        "kappa": args.kappa, "budget_bytes": budget.flash_bytes, "max_planes": budget.capacity(best.n),
+        "binding": binding, "conservativeness_text": cons_text, "options": opts, "transform": transform,
+        "scene": {"name": Path(args.scene).name, "path": str(args.scene), "sha256": scene.sha256},
+        "stats": stats,
+    }
+    write_outputs(out, best.packed, meta)
+
+    verts = []
+    for h in best.packed.polytopes():
+        h64 = h.astype(np.float64)
+        c = best.packed.polys[len(verts)]
+        v = polytope_vertices(h64, np.array([c["cx"], c["cy"], c["cz"]], np.float64))
+        verts.append(v if v is not None else np.zeros((1, 3)))
+    curve = [(c.n, c.conservativeness, c.conservativeness_ci) for c in cands]
+    write_report(out / "report.png", scene.ellipsoids.centers, verts, curve, (best.n, best.conservativeness),
+                 f"{Path(args.scene).name}: n = {best.n}, {best.n_planes} half-planes, {best.bytes} B of "
+                 f"{budget.flash_bytes} B, conservativeness {best.conservativeness:.2f}")
+
+    rows = [
+        ("scene", f"{args.scene} (sha256 {scene.sha256[:12]}...)"),
+        ("splats read / kept", f"{scene.stats.read:,} / {scene.stats.kept:,}"),
+        ("invalid / opacity-filtered / cropped", f"{scene.stats.invalid:,} / {scene.stats.filtered_opacity:,} / {scene.stats.cropped:,}"),
+        ("voxels (g)", f"{len(occ):,} ({occ.voxel_size:g} m)"),
+        ("N before merging (sub-cover)", f"{family.n_max:,}"),
+        ("n chosen", f"{best.n}"),
+        ("half-planes (dropped by reduction)", f"{best.n_planes:,} ({best.dropped:,})"),
+        ("bytes / budget", f"{best.bytes:,} / {budget.flash_bytes:,} ({best.bytes / best.n_planes:.1f} B per half-plane)"),
+        ("binding budget", binding),
+        ("conservativeness Vol(union)/Vol(V+)", cons_text),
+        ("modelled on-board time @168 MHz", f"typical {us['typical_us']:.0f} us, worst {us['worst_us']:.0f} us"),
+        ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"
+                                            + ("" if args.rate_hz else "  (bound it with --rate-hz)")),
+        ("time: occupancy / cover / budget", f"{occ.stats.get('time_s', 0):.1f} / {t_cover:.1f} / {t_budget:.1f} s"),
+        ("outputs", f"{out}/polytopes.h, manifest.json, cover.npz, report.png"),
+    ]
+    print_summary("polycc build", rows)
+    console.print(f"build: n = {best.n}, {best.n_planes} half-planes, {best.bytes} bytes -> {out / 'polytopes.h'} "
+                  f"({time.perf_counter() - t_all:.1f} s)")
+    return 0

@@ -1,0 +1,69 @@
+"""Cortex-M4 cost model of one barrier evaluation (``polycc_step``), for budgets and summaries.
+
+    cycles = FIXED + PER_CLUSTER * clusters + PER_ENTERED * polytopes entered
+             + PER_POLY * polytopes evaluated + PER_PLANE * their half-planes
+
+Coefficients are fitted (upper end of the range) to the worst-case rows of
+``bench/bench_kernel.py``, which runs the ARM build of ``polycc_kernel.c`` instruction by
+instruction (unicorn + capstone, documented Cortex-M4 cycle model): e.g. 150 polytopes /
+2000 half-planes = 146k cycles (872 us), 150 / 3720 = 193k cycles (1151 us).
+
+* worst case: every polytope entered and evaluated;
+* typical: the float32 reference (:func:`polycc.barrier.barrier` with ``stats``) counts the
+  polytopes the kernel enters and evaluates at positions sampled in the free space of the
+  scene's bounding box, so the culling is the kernel's own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from polycc.scene_layout import PackedScene
+
+CPU_HZ = 168e6
+DEFAULT_CPU_SHARE = 0.2
+FIXED_CYCLES = 2300.0
+PER_CLUSTER_CYCLES = 40.0
+PER_ENTERED_CYCLES = 60.0
+PER_POLY_CYCLES = 540.0
+PER_PLANE_CYCLES = 27.5
+
+
+def cycles(n_clusters: float, entered: float, evaluated: float, planes: float) -> float:
+    return (FIXED_CYCLES + PER_CLUSTER_CYCLES * n_clusters + PER_ENTERED_CYCLES * entered
+            + PER_POLY_CYCLES * evaluated + PER_PLANE_CYCLES * planes)
+
+
+def cycle_budget(rate_hz: float, cpu_share: float = DEFAULT_CPU_SHARE) -> float:
+    """Cycles available per evaluation: ``cpu_share`` of the 168 MHz CPU at ``rate_hz``."""
+    return cpu_share * CPU_HZ / rate_hz
+
+
+def plane_budget(avail_cycles: float, n_polys: int) -> int:
+    """Half-planes whose worst-case evaluation with ``n_polys`` polytopes (all entered and
+    evaluated) fits in ``avail_cycles``."""
+    from polycc.budget import n_clusters
+
+    avail = avail_cycles - cycles(n_clusters(n_polys), n_polys, n_polys, 0)
+    return max(0, int(avail // PER_PLANE_CYCLES))
+
+
+def estimate_us(packed: PackedScene, kappa: float = 100.0, samples: int = 400, seed: int = 0) -> dict:
+    """Modelled microseconds per evaluation at 168 MHz: typical (median) and worst case."""
+    from polycc.barrier import Params, barrier
+
+    n, nc = packed.n_polys, packed.n_clusters
+    worst = cycles(nc, n, n, packed.n_planes)
+    P = packed.polys
+    c = np.stack([P["cx"], P["cy"], P["cz"]], axis=1).astype(np.float64)
+    r = P["r_out"].astype(np.float64)
+    lo, hi = (c - r[:, None]).min(0), (c + r[:, None]).max(0)
+    x = np.random.default_rng(seed).uniform(lo, hi, (samples * 4, 3)).astype(np.float32)
+    stats: dict = {}
+    psi, _, _ = barrier(packed, Params(kappa=kappa, radius=0.0), x, stats=stats)
+    free = psi > 0
+    if not free.any():
+        free[:] = True
+    mean_planes = packed.n_planes / max(n, 1)
+    typ = cycles(nc, stats["entered"][free], stats["evaluated"][free], stats["evaluated"][free] * mean_planes)
+    return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6), "worst_us": float(worst / CPU_HZ * 1e6)}

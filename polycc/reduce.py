@@ -1,0 +1,121 @@
+"""Half-plane reduction, always outward: drop the planes whose removal adds the least volume.
+
+Removing a half-plane from {p : n_l . p <= d_l} can only enlarge the polytope, so every
+occupied voxel it contained stays inside. A plane is only dropped if the remaining ones
+still bound a finite polytope. Volumes come from qhull (scipy.spatial): the vertices of
+the reduced polytope by half-space intersection, then their convex hull.
+"""
+
+from __future__ import annotations
+
+import heapq
+
+import numpy as np
+from scipy.spatial import ConvexHull, HalfspaceIntersection
+from scipy.spatial import QhullError
+
+MIN_PLANES = 4  # a bounded polytope in R^3 needs at least 4 half-planes
+
+
+# A polytope counts as bounded only if the origin lies at least this far inside the convex
+# hull of its unit normals (gamma = min_{|u|=1} max_l n_l . u >= this), which also rules out
+# needle-like polytopes that reach far from the voxels they cover.
+MIN_GAMMA = 1e-4
+
+
+def is_bounded(normals: np.ndarray) -> bool:
+    """{p : n_l . p <= d_l} is bounded iff the normals positively span R^3, i.e. the origin
+    is strictly inside conv(normals). Qhull's half-space intersection does not detect an
+    unbounded intersection reliably, so this is checked separately."""
+    n = np.asarray(normals, np.float64)
+    if len(n) < MIN_PLANES:
+        return False
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    try:
+        eq = ConvexHull(n).equations
+    except (QhullError, ValueError):
+        return False
+    return bool(np.all(eq[:, 3] < -MIN_GAMMA))
+
+
+def polytope_vertices(h: np.ndarray, interior: np.ndarray) -> np.ndarray | None:
+    """Vertices of {p : n . p <= d} (rows [n, d]), or None if unbounded/degenerate."""
+    if not is_bounded(h[:, :3]):
+        return None
+    hs = np.c_[h[:, :3], -h[:, 3]]
+    try:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = HalfspaceIntersection(hs, interior).intersections
+    except (QhullError, ValueError):
+        return None
+    if not np.all(np.isfinite(v)) or np.abs(v - interior).max() > 1e6:
+        return None
+    return v
+
+
+def polytope_volume(vertices: np.ndarray) -> float:
+    try:
+        return float(ConvexHull(vertices).volume)
+    except (QhullError, ValueError):
+        return 0.0
+
+
+def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -> float:
+    """Volume added by dropping plane j (inf if the rest is unbounded)."""
+    v = polytope_vertices(np.delete(planes, j, axis=0), interior)
+    return np.inf if v is None else max(polytope_volume(v) - volume, 0.0)
+
+
+def reduce_planes(polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int) -> tuple[list[np.ndarray], float] | None:
+    """Drop planes across all polytopes, cheapest added volume first, until the total is <= max_planes.
+
+    ``polytopes``: (halfplanes (H,4), vertices (V,3)) pairs. Returns (reduced half-plane
+    arrays, total added volume m^3), or None if the planes cannot be cut down that far
+    while every polytope stays bounded.
+
+    Lazy greedy: a cost computed before its polytope last changed is recomputed when it
+    reaches the top of the heap and pushed back, so only a few costs are recomputed per
+    drop (removing planes makes the others' caps grow, so stale costs are mostly lower
+    bounds). Safety does not depend on the costs: every drop is outward and is only
+    committed after an exact boundedness check.
+    """
+    total = sum(len(h) for h, _ in polytopes)
+    if total <= max_planes:
+        return [np.asarray(h) for h, _ in polytopes], 0.0
+    if max_planes < MIN_PLANES * len(polytopes):
+        return None
+    planes = [np.asarray(h, np.float64) for h, _ in polytopes]
+    ids = [np.arange(len(h)) for h in planes]  # original row of each current plane
+    interior = [np.asarray(v, np.float64).mean(axis=0) for _, v in polytopes]
+    volume = [polytope_volume(np.asarray(v, np.float64)) for _, v in polytopes]
+    version = [0] * len(planes)
+    heap = []
+    for k, h in enumerate(planes):
+        if len(h) <= MIN_PLANES:
+            continue
+        for j in range(len(h)):
+            c = drop_cost(h, j, interior[k], volume[k])
+            if np.isfinite(c):
+                heap.append((c, k, j, 0))
+    heapq.heapify(heap)
+    added = 0.0
+    while total > max_planes:
+        if not heap:
+            return None
+        c, k, orig, ver = heapq.heappop(heap)
+        rows = np.flatnonzero(ids[k] == orig)
+        if not rows.size or len(planes[k]) <= MIN_PLANES:
+            continue
+        j = int(rows[0])
+        if ver != version[k]:
+            c = drop_cost(planes[k], j, interior[k], volume[k])
+            if np.isfinite(c):
+                heapq.heappush(heap, (c, k, orig, version[k]))
+            continue
+        planes[k] = np.delete(planes[k], j, axis=0)
+        ids[k] = np.delete(ids[k], j)
+        volume[k] += c
+        version[k] += 1
+        added += c
+        total -= 1
+    return planes, added
