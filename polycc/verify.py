@@ -52,6 +52,7 @@ class FamilyArrays:
     vertex_ptr: np.ndarray
     vertices: np.ndarray
     meta: dict
+    leaves: int = -1  # number of leaf polytopes when there is no merge list (stored build output)
 
     @staticmethod
     def from_family(fam) -> "FamilyArrays":
@@ -62,7 +63,7 @@ class FamilyArrays:
 
     @property
     def n_leaves(self) -> int:
-        return len(self.merges) + 1
+        return self.leaves if self.leaves >= 0 else len(self.merges) + 1
 
     def live_after(self, steps: int) -> np.ndarray:
         """Node ids alive after the first ``steps`` merges."""
@@ -70,6 +71,36 @@ class FamilyArrays:
         dead = np.zeros(N + steps, bool)
         dead[self.merges[:steps].reshape(-1)] = True
         return np.flatnonzero(~dead)
+
+
+def read_stored(path: str | Path, g: float, origin: np.ndarray) -> FamilyArrays:
+    """The polytopes of a `polycc build` folder exactly as the C decodes them (manifest.json),
+    as a family of n leaves with no merges. Vertices (only used to pick candidate polytopes
+    for a point; a wrong one can only make a check fail) come from qhull here."""
+    from scipy.optimize import linprog
+    from scipy.spatial import HalfspaceIntersection
+
+    path = Path(path)
+    man = json.loads((path / "manifest.json" if path.is_dir() else path).read_text())
+    if man.get("format") != "polycc-scene/1":
+        raise ValueError(f"{path}: manifest format {man.get('format')!r}, expected 'polycc-scene/1'")
+    planes, verts, pp, vp = [], [], [0], [0]
+    for k, item in enumerate(man["polytopes"]):
+        h = np.asarray(item["halfplanes"], np.float64).reshape(-1, 4)
+        nrm = np.linalg.norm(h[:, :3], axis=1)
+        res = linprog(c=[0, 0, 0, -1], A_ub=np.c_[h[:, :3], nrm], b_ub=h[:, 3], bounds=[(None, None)] * 3 + [(0, None)],
+                      method="highs")
+        if res.status != 0 or res.x[3] <= 0:
+            raise ValueError(f"{path}: stored polytope {k} is empty or unbounded")
+        v = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], res.x[:3]).intersections
+        planes.append(h)
+        verts.append(v)
+        pp.append(pp[-1] + len(h))
+        vp.append(vp[-1] + len(v))
+    return FamilyArrays(g=float(g), origin=np.asarray(origin, np.float64), grid_indices=np.empty((0, 3), np.int64),
+                        merges=np.empty((0, 2), np.int64), plane_ptr=np.array(pp), planes=np.concatenate(planes),
+                        vertex_ptr=np.array(vp), vertices=np.concatenate(verts), meta=man.get("stats", {}),
+                        leaves=len(planes))
 
 
 def read_family(path: str | Path) -> FamilyArrays:

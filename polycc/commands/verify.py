@@ -12,7 +12,7 @@ import numpy as np
 from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy
 from polycc.console import console, progress_bar
 from polycc.errors import PolyccError
-from polycc.verify import VerifyReport, certify_all_levels, check_level, default_levels, read_family
+from polycc.verify import VerifyReport, certify_all_levels, check_level, default_levels, read_family, read_stored
 
 
 def register(sub) -> None:
@@ -26,7 +26,9 @@ def register(sub) -> None:
                     "conservativeness Vol(U H^n)/Vol(V+) with a 95%% confidence interval. Tolerances count against "
                     "the cover. Exit 0 only if (a) and (b) hold; the last line holds the figures.",
     )
-    p.add_argument("out", metavar="OUT", help="directory written by `polycc cover` (or its cover.npz)")
+    p.add_argument("out", metavar="OUT",
+                   help="directory written by `polycc build` (its manifest.json: the stored, decoded polytopes the C "
+                        "reads are checked) or by `polycc cover` (its cover.npz: the merge family)")
     p.add_argument("scene", metavar="SCENE", help="the scene file the cover was made from")
     add_scene_options(p)
     v = p.add_argument_group("verify options")
@@ -65,24 +67,28 @@ def run(args: argparse.Namespace) -> int:
     if args.samples_per_ellipsoid < 64:
         raise PolyccError(f"--samples-per-ellipsoid {args.samples_per_ellipsoid}: must be at least 64")
     path = Path(args.out)
-    try:
-        fam = read_family(path)
-    except FileNotFoundError:
-        raise PolyccError(f"{path}: no cover.npz there; make it with `polycc cover SCENE -o {path}`") from None
-    except (OSError, ValueError, KeyError) as exc:
-        raise PolyccError(f"{path}: not a readable cover family ({exc}); re-create it with `polycc cover`") from None
-    N = fam.n_leaves
-    levels = _levels(args.levels, N)
+    stored = (path / "manifest.json").exists() if path.is_dir() else path.suffix == ".json"
     scene, grid = load_scene_and_occupancy(args.scene, args)
+    try:
+        fam = read_stored(path, grid.voxel_size, grid.origin) if stored else read_family(path)
+    except FileNotFoundError:
+        raise PolyccError(f"{path}: no cover.npz or manifest.json there; make it with `polycc cover` or "
+                          f"`polycc build SCENE -o {path}`") from None
+    except (OSError, ValueError, KeyError) as exc:
+        raise PolyccError(f"{path}: not a readable cover ({exc}); re-create it with `polycc cover` or `polycc build`") from None
+    N = fam.n_leaves
+    levels = [N] if stored else _levels(args.levels, N)
     idx = np.asarray(grid.indices, np.int64)
     rep = VerifyReport(voxels=len(idx))
-    rep.grid_matches_cover = bool(
+    rep.grid_matches_cover = stored or bool(
         grid.voxel_size == fam.g and np.array_equal(grid.origin, fam.origin) and np.array_equal(idx, fam.grid_indices))
+    if stored:
+        console.print(f"checking the {N} stored polytopes of {path} (decoded values, as the C reads them)")
     if not rep.grid_matches_cover:
         console.print("[yellow]note: the voxels of SCENE with these options differ from the ones the cover was built "
                       "from; pass the same scene options as to `polycc cover`[/yellow]")
     t0 = time.perf_counter()
-    if args.all_levels_certificate and N > 1:
+    if args.all_levels_certificate and N > 1 and not stored:
         with progress_bar("(a) certificate, every level", N - 1) as update:
             fails = certify_all_levels(fam, idx, progress=update)
         rep.certificate_levels = N
