@@ -25,7 +25,7 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/polycc demo-scene $(OUT)/arena.ply
-	$(BIN)/polycc voxelize $(OUT)/arena.ply --voxel 0.05 -o $(OUT)/occupancy.npz
+	$(BIN)/polycc build $(OUT)/arena.ply --flash-kb 64 -o $(OUT)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_MARK) $(PYTEST_ARGS)
