@@ -17,6 +17,11 @@ from polycc.errors import PolyccError
 COMMAND_MODULES = [
     "demo_scene",
     "voxelize",
+    "cover",
+    "verify",
+    "build",
+    "sim",
+    "flash",
 ]
 
 
