@@ -20,8 +20,6 @@ COMMAND_MODULES = [
     "cover",
     "verify",
     "build",
-    "sim",
-    "flash",
 ]
 
 
