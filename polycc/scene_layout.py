@@ -31,6 +31,7 @@ CLUSTER_BYTES = 32
 ROOT_BYTES = 48  # polycc_scene_t on a 32-bit target: 8 words + 4 pointers
 MAX_POLY_PLANES = 256
 MAX_PLANES = 65535
+MAX_POLYS = 65535  # uint16 polytope index in the cluster records
 MAX_NORMALS = 65536
 LEAD_PLANES = 8
 INV_GAMMA_UNIT = 2.0**-8
@@ -358,6 +359,8 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
     """
     if len(polytopes) == 0:
         raise PolyccError("no polytopes to pack; the scene needs at least one")
+    if len(polytopes) > MAX_POLYS:
+        raise PolyccError(f"{len(polytopes)} polytopes exceed the layout limit of {MAX_POLYS}; reduce the cover")
     rows = [np.asarray(h, dtype=np.float64).reshape(-1, 4) for h in polytopes]
     for k, h in enumerate(rows):
         _check_rows(k, h)

@@ -58,7 +58,10 @@
  * Flash bytes (exact, 32-bit target; polycc.scene_layout.layout_bytes):
  *     48 + 4 * n_planes + 16 * n_polys + 32 * n_clusters + 12 * n_normals
  * e.g. 10 half-planes per polytope, 13 polytopes per cluster, 400 distinct normals per 8000
- * planes: 4 + 1.6 + 0.25 + 0.6 = 6.4 bytes per half-plane.
+ * planes: 4 + 1.6 + 0.25 + 0.6 = 6.4 bytes per half-plane.  Distinct normals cost 12 B each:
+ * covers whose normals repeat (lattice normals of voxel hulls, k-DOPs, or a table capped by
+ * pack_scene(max_normals=T)) meet 8 B per half-plane; unique normals cost 16 + 16/H B per
+ * half-plane (format 2: 16 + 36/H).
  *
  * Why this and not int16 normals (8 B per plane): polytope records would still cost
  * 16-36 B per 6-20 planes, so 8 B per plane plus records misses 8 B on average; and the
@@ -86,9 +89,10 @@
 #define POLYCC_CLUSTER_BYTES 32u
 #define POLYCC_ROOT_BYTES 48u
 
-/* Limits: half-planes per scene, per polytope (8-bit count - 1), distinct normals (uint16_t
+/* Limits: half-planes per scene, polytopes (uint16_t cluster index), half-planes per polytope (8-bit count - 1), distinct normals (uint16_t
  * index), lead planes (3-bit index). */
 #define POLYCC_MAX_PLANES 65535u
+#define POLYCC_MAX_POLYS 65535u
 #define POLYCC_MAX_POLY_PLANES 256u
 #define POLYCC_MAX_NORMALS 65536u
 #define POLYCC_LEAD_PLANES 8u
