@@ -23,8 +23,10 @@ Not modelled: flash wait states (the STM32F405 ART accelerator hides them for co
 streamed from flash can add up to 5 cycles per 16-byte line, reported separately as
 ``flash_extra_us``) and interrupts.
 
-Workloads: synthetic rooms with n in {10, 30, 50, 100, 150} polytopes, plus a scene that fills
-64 KB of flash.  Typical: positions along a closed-loop flight (host kernel, dt = 10 ms) from
+Workloads: synthetic rooms with n in {10, 30, 50, 100, 150} random-hull polytopes (unique
+normals), the 150-polytope room padded to 3720 half-planes (what 64 KiB held in format 2),
+the same padded to fill 64 KiB in format 3, and 150 hulls of voxel corners (lattice normals,
+table capped at 512) for the storage of a PolyMerge-like cover.  Typical: positions along a closed-loop flight (host kernel, dt = 10 ms) from
 a start to a goal across the room.  Worst: the same polytopes moved onto a shell around the
 query point so that every polytope lies within the culling distance (none is culled).
 Baseline in the same run: bench/bench_kernel_naive.c (every half-plane, libm expf/logf,
@@ -53,7 +55,8 @@ sys.path.insert(0, str(REPO))
 from host_sim import kernel_arm  # noqa: E402
 from host_sim.kernel_ffi import OUT_DTYPE, HostScene, step_batch  # noqa: E402
 from polycc import barrier as B  # noqa: E402
-from polycc.scene_layout import SCENE_FORMAT, PackedScene, pack_scene, pad_to_planes, random_hull_polytopes  # noqa: E402
+from polycc.scene_layout import (SCENE_FORMAT, PackedScene, hull_halfplanes, layout_bytes, pack_scene,  # noqa: E402
+                                 pad_to_planes, random_hull_polytopes)
 
 MHZ = 168.0
 FLASH_BASE, FLASH_SIZE = 0x08000000, 0x00100000
@@ -222,12 +225,12 @@ class Emulator:
         self.scene_range = (SCENE_BASE, SCENE_BASE)
 
     def load_scene(self, sc: PackedScene, params: B.Params) -> None:
-        clusters, polys, planes = sc.clusters.tobytes(), sc.polys.tobytes(), sc.planes.tobytes()
-        self.uc.mem_write(SCENE_BASE, clusters + polys + planes)
-        self.scene_range = (SCENE_BASE, SCENE_BASE + len(clusters) + len(polys) + len(planes))
-        root = struct.pack("<IIIIffIII", SCENE_FORMAT, sc.n_clusters, sc.n_polys, sc.n_planes, float(sc.coord_bound),
-                           float(sc.log_lmax), SCENE_BASE, SCENE_BASE + len(clusters),
-                           SCENE_BASE + len(clusters) + len(polys))
+        parts = [sc.clusters.tobytes(), sc.polys_raw.tobytes(), sc.planes.tobytes(), sc.normals.tobytes()]
+        self.uc.mem_write(SCENE_BASE, b"".join(parts))
+        addr = np.cumsum([SCENE_BASE] + [len(p) for p in parts])
+        self.scene_range = (SCENE_BASE, int(addr[-1]))
+        root = struct.pack("<IIIIIfffIIII", SCENE_FORMAT, sc.n_clusters, sc.n_polys, sc.n_planes, sc.n_normals,
+                           float(sc.quantum), float(sc.coord_bound), float(sc.log_lmax), *(int(a) for a in addr[:4]))
         self.uc.mem_write(IO_BASE, root)
         self.uc.mem_write(IO_BASE + 0x40, np.array(params.f32(), np.float32).tobytes())
 
@@ -248,14 +251,36 @@ class Emulator:
         return cost, out
 
 
-def room_scene(n: int, seed: int, fill_bytes: int | None = None) -> PackedScene:
+def room_scene(n: int, seed: int, fill_bytes: int | None = None, planes: int | None = None) -> PackedScene:
+    """Random hulls (unique normals: the table holds one normal per plane).  ``fill_bytes``/``planes``
+    pad with redundant half-planes (duplicates of a face: no new normals) up to that size."""
     rng = np.random.default_rng(seed)
     polys = random_hull_polytopes(rng, n, points=(8, 14))
     sc = pack_scene(polys)
     if fill_bytes:  # add redundant half-planes until the flash image reaches fill_bytes
-        total = sc.n_planes + (fill_bytes - sc.flash_bytes()) // 16
-        sc = pack_scene(pad_to_planes(polys, total))
+        planes = sc.n_planes + (fill_bytes - sc.flash_bytes()) // 4
+    if planes:
+        sc = pack_scene(pad_to_planes(polys, planes), merge_duplicates=False)
     return sc
+
+
+def voxel_scene(n: int, seed: int, max_normals: int | None = 512, vox: float = 0.05) -> PackedScene:
+    """Hulls of voxel corners (a PolyMerge-like cover: lattice normals), the normal table capped."""
+    rng = np.random.default_rng(seed)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+    hs, vs = [], []
+    for _ in range(n):
+        c = rng.uniform(0, 1, 3) * np.array([10.0, 10.0, 3.0])
+        pts = np.round((c + rng.normal(size=(int(rng.integers(4, 12)), 3)) * rng.uniform(0.05, 0.4, 3)) / vox)
+        allp = (pts[:, None, :] + corners[None]).reshape(-1, 3) * vox
+        hs.append(hull_halfplanes(allp))
+        vs.append(allp)
+    return pack_scene(hs, vs, max_normals=max_normals)
+
+
+def format2_bytes(sc: PackedScene) -> int:
+    """Flash bytes the same polytopes took in format 2 (16 B/plane, 36 B per polytope and cluster)."""
+    return 36 + 16 * sc.n_planes + 36 * sc.n_polys + 36 * sc.n_clusters
 
 
 def flight_path(sc: PackedScene, params: B.Params, n_samples: int, seed: int) -> np.ndarray:
@@ -303,7 +328,7 @@ def shell_scene(sc: PackedScene, dist: float = 0.5) -> PackedScene:
             lo, hi = (mid, hi) if phi0(mid) < dist else (lo, mid)
         t = hi * u - c
         out.append(np.c_[h[:, :3], h[:, 3] + h[:, :3] @ t])
-    return pack_scene(out)
+    return pack_scene(out, merge_duplicates=False)
 
 
 def us(cycles: float) -> float:
@@ -335,7 +360,9 @@ def bench_scene(emu: Emulator, name: str, sc: PackedScene, params: B.Params, n_p
     w_i, w_lo, w_hi, w_l = agg(worst, np.max)
     n_i, n_lo, n_hi, _ = agg(naive, np.mean)
     return {
-        "scene": name, "n_polys": sc.n_polys, "n_planes": sc.n_planes, "flash_bytes": sc.flash_bytes(),
+        "scene": name, "n_polys": sc.n_polys, "n_planes": sc.n_planes, "n_normals": sc.n_normals,
+        "flash_bytes": sc.flash_bytes(), "bytes_per_plane": sc.flash_bytes() / sc.n_planes,
+        "format2_bytes_per_plane": format2_bytes(sc) / sc.n_planes,
         "typical_instr": t_i, "typical_us": [us(t_lo), us(t_hi)], "typical_max_us": [us(tm_lo), us(tm_hi)],
         "worst_instr": w_i, "worst_us": [us(w_lo), us(w_hi)], "worst_polys_evaluated": evaluated,
         "naive_instr": n_i, "naive_us": [us(n_lo), us(n_hi)],
@@ -366,7 +393,9 @@ def main(argv=None) -> int:
     rows = []
     for n in (10, 30, 50, 100, 150):
         rows.append(bench_scene(emu, f"room{n}", room_scene(n, seed=n), params, n_path, seed=n))
+    rows.append(bench_scene(emu, "planes3720", room_scene(150, seed=7, planes=3720), params, n_path, seed=7))
     rows.append(bench_scene(emu, "fill64k", room_scene(150, seed=7, fill_bytes=65536), params, n_path, seed=7))
+    rows.append(bench_scene(emu, "vox150", voxel_scene(150, seed=5), params, n_path, seed=5))
     test_dir = kernel_arm.test_program().parent
     stack, chain = kernel_arm.worst_stack(test_dir)
     size = kernel_arm.size_of(test_dir / "polycc_kernel.o")
@@ -383,12 +412,13 @@ def table(res: dict) -> str:
         return f"{v[0]:.1f}-{v[1]:.1f}"
 
     lines = [f"Cortex-M4F @ {res['mhz']:.0f} MHz, kappa=100 (modelled cycle range low-high; see bench_kernel.py)",
-             "| scene | polys | half-planes | flash B | typical instr | typical us | typical max us | worst instr |"
+             "| scene | polys | half-planes | normals | flash B | B/half-plane (fmt 2) | typical instr | typical us | typical max us | worst instr |"
              " worst us (polys evaluated) | naive instr | naive us | speed-up (typical) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         lines.append(
-            f"| {r['scene']} | {r['n_polys']} | {r['n_planes']} | {r['flash_bytes']} | {r['typical_instr']:.0f} |"
+            f"| {r['scene']} | {r['n_polys']} | {r['n_planes']} | {r['n_normals']} | {r['flash_bytes']} |"
+            f" {r['bytes_per_plane']:.2f} ({r['format2_bytes_per_plane']:.2f}) | {r['typical_instr']:.0f} |"
             f" {rng(r['typical_us'])} | {rng(r['typical_max_us'])} | {r['worst_instr']:.0f} |"
             f" {rng(r['worst_us'])} ({r['worst_polys_evaluated']}) |"
             f" {r['naive_instr']:.0f} | {rng(r['naive_us'])} | {r['speedup_typical'][0]:.0f}x-{r['speedup_typical'][1]:.0f}x |")

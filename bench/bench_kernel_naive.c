@@ -16,9 +16,10 @@
 static float naive_a[NAIVE_MAX_POLYS];
 static float naive_ga[NAIVE_MAX_POLYS][3];
 
-static float naive_g(const polycc_plane_t *pl, const float p[3])
+static float naive_g(const polycc_scene_t *sc, const polycc_plane_t *pl, const float p[3])
 {
-    return ((pl->nx * p[0] + pl->ny * p[1]) + pl->nz * p[2]) - pl->d;
+    const polycc_normal_t *n = &sc->normals[pl->normal];
+    return ((n->nx * p[0] + n->ny * p[1]) + n->nz * p[2]) - (float)pl->d * sc->quantum;
 }
 
 uint32_t naive_step(const polycc_scene_t *sc, const polycc_params_t *prm, const float x[3], const float goal[3],
@@ -27,30 +28,35 @@ uint32_t naive_step(const polycc_scene_t *sc, const polycc_params_t *prm, const 
 uint32_t naive_step(const polycc_scene_t *sc, const polycc_params_t *prm, const float x[3], const float goal[3],
                     polycc_out_t *out)
 {
-    uint32_t k, l, n = sc->n_polys < NAIVE_MAX_POLYS ? sc->n_polys : NAIVE_MAX_POLYS;
+    uint32_t j, k, l, n = sc->n_polys < NAIVE_MAX_POLYS ? sc->n_polys : NAIVE_MAX_POLYS;
     float kappa = prm->kappa, amin = 3.0e38f, S2 = 0.0f, G[3] = {0.0f, 0.0f, 0.0f};
     float dot, viol, n2;
     int i;
-    for (k = 0; k < n; ++k) {
-        const polycc_plane_t *pl = &sc->planes[sc->polys[k].first];
-        uint32_t L = sc->polys[k].count;
+    for (j = 0, k = 0; j < sc->n_clusters && k < n; ++j) {
+      const polycc_plane_t *pl = &sc->planes[sc->clusters[j].first_plane];
+      uint32_t kend = sc->clusters[j].first + sc->clusters[j].count;
+      for (; k < kend && k < n; ++k) {
+        uint32_t L = POLYCC_META_COUNT(sc->polys[k].meta);
         float m = -3.0e38f, S = 0.0f, N[3] = {0.0f, 0.0f, 0.0f};
         for (l = 0; l < L; ++l) {
-            float g = naive_g(&pl[l], x);
+            float g = naive_g(sc, &pl[l], x);
             m = g > m ? g : m;
         }
         for (l = 0; l < L; ++l) {
-            float e = expf(kappa * (naive_g(&pl[l], x) - m));
+            const polycc_normal_t *nl = &sc->normals[pl[l].normal];
+            float e = expf(kappa * (naive_g(sc, &pl[l], x) - m));
             S += e;
-            N[0] += e * pl[l].nx;
-            N[1] += e * pl[l].ny;
-            N[2] += e * pl[l].nz;
+            N[0] += e * nl->nx;
+            N[1] += e * nl->ny;
+            N[2] += e * nl->nz;
         }
         naive_a[k] = m + logf(S) / kappa;
         for (i = 0; i < 3; ++i) {
             naive_ga[k][i] = N[i] / S;
         }
         amin = naive_a[k] < amin ? naive_a[k] : amin;
+        pl += L;
+      }
     }
     for (k = 0; k < n; ++k) {
         float e = expf(-kappa * (naive_a[k] - amin));

@@ -34,13 +34,19 @@ HOST_CFLAGS = ["-O2", "-std=c99", "-ffp-contract=off", "-fno-math-errno", "-Wall
                "-Wconversion", "-Werror"]
 
 CDEF = """
-typedef struct polycc_plane { float nx, ny, nz, d; } polycc_plane_t;
+typedef struct polycc_normal { float nx, ny, nz; } polycc_normal_t;
+typedef struct polycc_plane { uint16_t normal; int16_t d; } polycc_plane_t;
 typedef struct polycc_poly {
-    uint16_t first; uint16_t count; float cx, cy, cz; float r_out; float inv_gamma; float r_in; uint8_t lead[8];
+    int16_t c[3]; uint16_t r_out; uint16_t r_in; uint16_t inv_gamma; uint32_t meta;
 } polycc_poly_t;
+typedef struct polycc_cluster {
+    uint16_t first; uint16_t count; uint32_t first_plane; float cx, cy, cz; float r_out; float inv_gamma; float r_in;
+} polycc_cluster_t;
 typedef struct polycc_scene {
-    uint32_t format; uint32_t n_clusters; uint32_t n_polys; uint32_t n_planes; float coord_bound; float log_lmax;
-    const polycc_poly_t *clusters; const polycc_poly_t *polys; const polycc_plane_t *planes;
+    uint32_t format; uint32_t n_clusters; uint32_t n_polys; uint32_t n_planes; uint32_t n_normals; float quantum;
+    float coord_bound; float log_lmax;
+    const polycc_cluster_t *clusters; const polycc_poly_t *polys; const polycc_plane_t *planes;
+    const polycc_normal_t *normals;
 } polycc_scene_t;
 typedef struct polycc_params { float kappa; float radius; float beta; float c_clf; float v_max; } polycc_params_t;
 typedef struct polycc_out {
@@ -155,18 +161,25 @@ class HostScene:
         m = load()
         ffi = m.ffi
         self._clusters = np.ascontiguousarray(self.packed.clusters)
-        self._polys = np.ascontiguousarray(self.packed.polys)
+        self._polys = np.ascontiguousarray(self.packed.polys_raw)
         self._planes = np.ascontiguousarray(self.packed.planes)
+        self._normals = np.ascontiguousarray(self.packed.normals)
         self.c = ffi.new("polycc_scene_t *")
         self.c.format = self.fmt
         self.c.n_clusters = self.packed.n_clusters
         self.c.n_polys = self.packed.n_polys
         self.c.n_planes = self.packed.n_planes
+        self.c.n_normals = self.packed.n_normals
+        self.c.quantum = float(self.packed.quantum)
         self.c.coord_bound = float(self.packed.coord_bound)
         self.c.log_lmax = float(self.packed.log_lmax)
-        self.c.clusters = ffi.cast("const polycc_poly_t *", ffi.from_buffer(self._clusters))
-        self.c.polys = ffi.cast("const polycc_poly_t *", ffi.from_buffer(self._polys))
-        self.c.planes = ffi.cast("const polycc_plane_t *", ffi.from_buffer(self._planes))
+        # empty arrays: a valid non-NULL pointer (the kernel never reads it)
+        keep = self._keep = [a if a.nbytes else np.zeros(1, np.uint32) for a in
+                             (self._clusters, self._polys, self._planes, self._normals)]
+        self.c.clusters = ffi.cast("const polycc_cluster_t *", ffi.from_buffer(keep[0]))
+        self.c.polys = ffi.cast("const polycc_poly_t *", ffi.from_buffer(keep[1]))
+        self.c.planes = ffi.cast("const polycc_plane_t *", ffi.from_buffer(keep[2]))
+        self.c.normals = ffi.cast("const polycc_normal_t *", ffi.from_buffer(keep[3]))
 
 
 def c_params(params: Params):

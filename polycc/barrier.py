@@ -61,8 +61,15 @@ def _coord_ok(p: np.ndarray) -> np.ndarray:
     return np.all((p >= -POS_MAX) & (p <= POS_MAX), axis=1)
 
 
+def _quantum_ok(q) -> bool:
+    """Mirror of ``polycc_quantum_ok``: a power of two in [2^-20, 2^4]."""
+    b = int(np.asarray(q, F).view(np.uint32))
+    return (b & 0x007FFFFF) == 0 and 107 <= (b >> 23) <= 131
+
+
 def _scene_ok(sc: PackedScene) -> bool:
-    return bool((sc.n_polys == 0) == (sc.n_clusters == 0) and ZERO <= sc.coord_bound <= F(1e6) and ZERO <= sc.log_lmax <= F(12.0))
+    return bool((sc.n_polys == 0) == (sc.n_clusters == 0) and _quantum_ok(sc.quantum) and ZERO <= sc.coord_bound <= F(1e6)
+                and ZERO <= sc.log_lmax <= F(12.0))
 
 
 def _visit_order(lead: np.ndarray, count: int) -> np.ndarray:

@@ -26,8 +26,9 @@ def test_bench_quick(tmp_path):
     assert bench_kernel.main(["--quick", "--out", str(out)]) == 0
     res = json.loads(out.read_text())
     rows = {r["scene"]: r for r in res["rows"]}
-    assert set(rows) == {"room10", "room30", "room50", "room100", "room150", "fill64k"}
+    assert set(rows) == {"room10", "room30", "room50", "room100", "room150", "planes3720", "fill64k", "vox150"}
     assert res["stack_bytes"] <= 512
     for name in ("room30", "room50", "room100", "room150", "fill64k"):
         assert rows[name]["speedup_typical"][0] >= 10, name
-    assert rows["fill64k"]["flash_bytes"] <= 65536
+    assert rows["fill64k"]["flash_bytes"] <= 65536 and rows["fill64k"]["n_planes"] >= 8000
+    assert rows["vox150"]["bytes_per_plane"] <= 8.0

@@ -43,7 +43,7 @@ def scene(name: str):
             boxes.append(axis_box(lo, lo + np.round(rng.uniform(0.125, 1.0, 3) * 8) / 8))
         return pack_scene(boxes)
     if name == "planes4096":
-        return pack_scene(pad_to_planes(random_hull_polytopes(rng, 150, points=(12, 16)), 4096))
+        return pack_scene(pad_to_planes(random_hull_polytopes(rng, 150, points=(12, 16)), 4096), merge_duplicates=False)
     raise KeyError(name)
 
 

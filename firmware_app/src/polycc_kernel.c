@@ -89,25 +89,29 @@ float polycc_exp(float x)
     return polycc_exp_le88(x > 88.0f ? 88.0f : x);
 }
 
-/* g = n . p - d in the order ((nx px + ny py) + nz pz) - d. */
-POLYCC_INLINE float polycc_plane_value(const polycc_plane_t *pl, float px, float py, float pz)
+/* g = n . p - d q in the order ((nx px + ny py) + nz pz) - d q; d q is exact (int16 times a
+ * power of two). */
+POLYCC_INLINE float polycc_plane_value(const polycc_plane_t *pl, const polycc_normal_t *nrm, float q, float px,
+                                       float py, float pz)
 {
-    return ((polycc_mul(pl->nx, px) + polycc_mul(pl->ny, py)) + polycc_mul(pl->nz, pz)) - pl->d;
+    const polycc_normal_t *n = &nrm[pl->normal];
+    return ((polycc_mul(n->nx, px) + polycc_mul(n->ny, py)) + polycc_mul(n->nz, pz)) - polycc_mul((float)pl->d, q);
 }
 
-/* u = p - c and |u|^2 in the order (ux^2 + uy^2) + uz^2. */
-POLYCC_INLINE float polycc_dist2u(const polycc_poly_t *P, float px, float py, float pz, float u[3])
+/* u = p - c and |u|^2 in the order (ux^2 + uy^2) + uz^2, for a cluster (float32 centre). */
+POLYCC_INLINE float polycc_dist2c(const polycc_cluster_t *C, float px, float py, float pz)
 {
-    u[0] = px - P->cx;
-    u[1] = py - P->cy;
-    u[2] = pz - P->cz;
+    float ux = px - C->cx, uy = py - C->cy, uz = pz - C->cz;
+    return (polycc_mul(ux, ux) + polycc_mul(uy, uy)) + polycc_mul(uz, uz);
+}
+
+/* The same for a polytope, whose centre is stored in quanta (decoded exactly: c * q). */
+POLYCC_INLINE float polycc_dist2u(const polycc_poly_t *P, float q, float px, float py, float pz, float u[3])
+{
+    u[0] = px - (float)P->c[0] * q;
+    u[1] = py - (float)P->c[1] * q;
+    u[2] = pz - (float)P->c[2] * q;
     return (polycc_mul(u[0], u[0]) + polycc_mul(u[1], u[1])) + polycc_mul(u[2], u[2]);
-}
-
-POLYCC_INLINE float polycc_dist2(const polycc_poly_t *P, float px, float py, float pz)
-{
-    float u[3];
-    return polycc_dist2u(P, px, py, pz, u);
 }
 
 float polycc_log(float x)
@@ -133,11 +137,12 @@ float polycc_log(float x)
  * kernel (about 16 instructions per half-plane at -Os): kept out of line and unrolled by two
  * so that skipping a negligible plane costs no call and half a loop branch. */
 static POLYCC_NOINLINE const polycc_plane_t *polycc_scan(const polycc_plane_t *pl, const polycc_plane_t *end,
-                                                         float px, float py, float pz, float thr, float *g_out)
+                                                         const polycc_normal_t *nrm, float q, float px, float py,
+                                                         float pz, float thr, float *g_out)
 {
     for (; pl + 1 < end; pl += 2) {
-        float g0 = polycc_plane_value(pl, px, py, pz);
-        float g1 = polycc_plane_value(pl + 1, px, py, pz);
+        float g0 = polycc_plane_value(pl, nrm, q, px, py, pz);
+        float g1 = polycc_plane_value(pl + 1, nrm, q, px, py, pz);
         if (POLYCC_UNLIKELY(g0 > thr)) {
             *g_out = g0;
             return pl;
@@ -148,7 +153,7 @@ static POLYCC_NOINLINE const polycc_plane_t *polycc_scan(const polycc_plane_t *p
         }
     }
     if (pl < end) {
-        float g0 = polycc_plane_value(pl, px, py, pz);
+        float g0 = polycc_plane_value(pl, nrm, q, px, py, pz);
         if (g0 > thr) {
             *g_out = g0;
             return pl;
@@ -169,13 +174,15 @@ static POLYCC_NOINLINE const polycc_plane_t *polycc_scan(const polycc_plane_t *p
  * running maximum reaches abort_at: then max_l g_l >= abort_at and it cannot matter to the
  * soft-min ("Culling").  Finally a = m + A/S and grad a = (N + kappa (M - (A/S) N)) / S.
  */
-static int polycc_softmax_poly(const polycc_plane_t *base, uint32_t n, uint32_t lead, float px, float py, float pz,
-                               float kappa, float neg_cut, float abort_at, float *a_out, float ga[3])
+static int polycc_softmax_poly(const polycc_plane_t *base, uint32_t n, uint32_t lead, const polycc_normal_t *nrm,
+                               float q, float px, float py, float pz, float kappa, float neg_cut, float abort_at,
+                               float *a_out, float ga[3])
 {
     const polycc_plane_t *lp = base + lead;
     const polycc_plane_t *pl = base, *end = lp; /* planes [0, lead), then (lead, n) */
-    float m = polycc_plane_value(lp, px, py, pz);
-    float thr, S, A, Nx, Ny, Nz, Mx, My, Mz, invS, q;
+    const polycc_normal_t *ln = &nrm[lp->normal];
+    float m = polycc_plane_value(lp, nrm, q, px, py, pz);
+    float thr, S, A, Nx, Ny, Nz, Mx, My, Mz, invS, qa;
     int second = 0;
     if (m >= abort_at) {
         return 0;
@@ -183,15 +190,16 @@ static int polycc_softmax_poly(const polycc_plane_t *base, uint32_t n, uint32_t 
     thr = m + neg_cut;
     S = 1.0f;
     A = 0.0f;
-    Nx = lp->nx;
-    Ny = lp->ny;
-    Nz = lp->nz;
+    Nx = ln->nx;
+    Ny = ln->ny;
+    Nz = ln->nz;
     Mx = 0.0f;
     My = 0.0f;
     Mz = 0.0f;
     for (;; ++pl) {
         float g;
-        pl = polycc_scan(pl, end, px, py, pz, thr, &g);
+        const polycc_normal_t *nl;
+        pl = polycc_scan(pl, end, nrm, q, px, py, pz, thr, &g);
         if (pl >= end) {
             if (second) {
                 break;
@@ -201,6 +209,7 @@ static int polycc_softmax_poly(const polycc_plane_t *base, uint32_t n, uint32_t 
             end = base + n;
             continue;
         }
+        nl = &nrm[pl->normal];
         if (g > m) {
             float d0, r;
             if (g >= abort_at) {
@@ -213,9 +222,9 @@ static int polycc_softmax_poly(const polycc_plane_t *base, uint32_t n, uint32_t 
             My = r * (My + d0 * Ny);
             Mz = r * (Mz + d0 * Nz);
             S = r * S + 1.0f;
-            Nx = r * Nx + pl->nx;
-            Ny = r * Ny + pl->ny;
-            Nz = r * Nz + pl->nz;
+            Nx = r * Nx + nl->nx;
+            Ny = r * Ny + nl->ny;
+            Nz = r * Nz + nl->nz;
             m = g;
             thr = m + neg_cut;
         } else {
@@ -224,20 +233,20 @@ static int polycc_softmax_poly(const polycc_plane_t *base, uint32_t n, uint32_t 
             float ed = e * d;
             S = S + e;
             A = A + ed;
-            Nx = Nx + e * pl->nx;
-            Ny = Ny + e * pl->ny;
-            Nz = Nz + e * pl->nz;
-            Mx = Mx + ed * pl->nx;
-            My = My + ed * pl->ny;
-            Mz = Mz + ed * pl->nz;
+            Nx = Nx + e * nl->nx;
+            Ny = Ny + e * nl->ny;
+            Nz = Nz + e * nl->nz;
+            Mx = Mx + ed * nl->nx;
+            My = My + ed * nl->ny;
+            Mz = Mz + ed * nl->nz;
         }
     }
     invS = 1.0f / S;
-    q = A * invS;
-    *a_out = m + q;
-    ga[0] = (Nx + kappa * (Mx - q * Nx)) * invS;
-    ga[1] = (Ny + kappa * (My - q * Ny)) * invS;
-    ga[2] = (Nz + kappa * (Mz - q * Nz)) * invS;
+    qa = A * invS;
+    *a_out = m + qa;
+    ga[0] = (Nx + kappa * (Mx - qa * Nx)) * invS;
+    ga[1] = (Ny + kappa * (My - qa * Ny)) * invS;
+    ga[2] = (Nz + kappa * (Mz - qa * Nz)) * invS;
     return 1;
 }
 
@@ -248,12 +257,21 @@ static int polycc_params_ok(const polycc_params_t *prm)
            prm->c_clf >= 0.0f && prm->c_clf <= 1.0e6f && prm->v_max > 0.0f && prm->v_max <= 1.0e3f;
 }
 
+/* q is a power of two in [2^-20, 2^4]: mantissa bits zero, biased exponent in [107, 131]. */
+static int polycc_quantum_ok(float q)
+{
+    uint32_t b = polycc_bits(q), e = b >> 23;
+    return (b & 0x007fffffu) == 0u && e >= 107u && e <= 131u;
+}
+
 static int polycc_scene_ok(const polycc_scene_t *sc)
 {
     return sc != NULL && sc->format == POLYCC_SCENE_FORMAT &&
            (sc->n_polys == 0u) == (sc->n_clusters == 0u) &&
-           (sc->n_clusters == 0u || (sc->clusters != NULL && sc->polys != NULL && sc->planes != NULL)) &&
-           sc->coord_bound >= 0.0f && sc->coord_bound <= 1.0e6f && sc->log_lmax >= 0.0f && sc->log_lmax <= 12.0f;
+           (sc->n_clusters == 0u ||
+            (sc->clusters != NULL && sc->polys != NULL && sc->planes != NULL && sc->normals != NULL)) &&
+           polycc_quantum_ok(sc->quantum) && sc->coord_bound >= 0.0f && sc->coord_bound <= 1.0e6f &&
+           sc->log_lmax >= 0.0f && sc->log_lmax <= 12.0f;
 }
 
 /* |v| <= POLYCC_POS_MAX for a finite v (false for NaN and +-Inf). */
@@ -262,20 +280,21 @@ static int polycc_coord_ok(float v)
     return v >= -POLYCC_POS_MAX && v <= POLYCC_POS_MAX;
 }
 
-/* Culling test of a polytope or cluster record B, d2 = |p - c|^2, Tp = max(T, 0): returns 1
- * when |p - c| > r_out + Tp * inv_gamma, which proves max_l g_kl(p) > T for every
- * polytope k the record bounds (docs/barrier.md, "Culling"). */
-POLYCC_INLINE int polycc_culled(const polycc_poly_t *B, float d2, float Tp)
+/* Culling test with d2 = |p - c|^2, Tp = max(T, 0): returns 1 when |p - c| > r_out + Tp * inv_gamma,
+ * which proves max_l g_kl(p) > T for every polytope k the record bounds (docs/barrier.md,
+ * "Culling").  Polytope records pass their decoded (exact) radii. */
+POLYCC_INLINE int polycc_culled(float r_out, float inv_gamma, float d2, float Tp)
 {
-    float rad = B->r_out + Tp * B->inv_gamma;
+    float rad = r_out + Tp * inv_gamma;
     return d2 > rad * rad;
 }
 
 uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *params, const float p[3], float *psi,
                         float grad[3])
 {
-    float px, py, pz, kappa, invk, neg_cut, slack, a_ref, cur, S2, Gx, Gy, Gz, marg, T, Tp;
+    float px, py, pz, kappa, invk, neg_cut, slack, a_ref, cur, S2, Gx, Gy, Gz, marg, T, Tp, q, q_out;
     uint32_t j, nev = 0;
+    const polycc_normal_t *nrm;
     *psi = 0.0f;
     grad[0] = 0.0f;
     grad[1] = 0.0f;
@@ -287,6 +306,9 @@ uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *para
     px = p[0];
     py = p[1];
     pz = p[2];
+    q = scene->quantum;
+    q_out = q * POLYCC_R_OUT_QUANTA; /* exact: powers of two */
+    nrm = scene->normals;
     kappa = params->kappa;
     invk = 1.0f / kappa;
     neg_cut = -POLYCC_NEGLIGIBLE_NATS * invk;
@@ -300,14 +322,16 @@ uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *para
         const polycc_poly_t *P = &scene->polys[C->first];
         const polycc_poly_t *Pend = P + C->count;
         float t = a_ref + C->r_in;
-        if (!(t > 0.0f && polycc_dist2(C, px, py, pz) < t * t)) {
+        if (!(t > 0.0f && polycc_dist2c(C, px, py, pz) < t * t)) {
             continue;
         }
         for (; P < Pend; ++P) {
-            float d2 = polycc_dist2(P, px, py, pz);
-            t = a_ref + P->r_in;
+            float u[3];
+            float d2 = polycc_dist2u(P, q, px, py, pz, u);
+            float r_in = (float)P->r_in * q;
+            t = a_ref + r_in;
             if (t > 0.0f && d2 < t * t) {
-                a_ref = sqrtf(d2) - P->r_in;
+                a_ref = sqrtf(d2) - r_in;
             }
         }
     }
@@ -325,18 +349,22 @@ uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *para
         const polycc_cluster_t *C = &scene->clusters[j];
         const polycc_poly_t *P = &scene->polys[C->first];
         const polycc_poly_t *Pend = P + C->count;
-        if (polycc_culled(C, polycc_dist2(C, px, py, pz), Tp)) {
+        const polycc_plane_t *pl = &scene->planes[C->first_plane];
+        if (polycc_culled(C->r_out, C->inv_gamma, polycc_dist2c(C, px, py, pz), Tp)) {
             continue;
         }
         for (; P < Pend; ++P) {
             float a, ga[3], u[3];
-            uint32_t oct;
-            if (polycc_culled(P, polycc_dist2u(P, px, py, pz, u), Tp)) {
+            uint32_t oct, meta = P->meta, cnt = POLYCC_META_COUNT(meta);
+            const polycc_plane_t *base = pl;
+            pl += cnt;
+            if (polycc_culled((float)P->r_out * q_out, (float)P->inv_gamma * POLYCC_INV_GAMMA_UNIT,
+                              polycc_dist2u(P, q, px, py, pz, u), Tp)) {
                 continue; /* max_l g_kl >= gamma (|u| - r_out) > T */
             }
             /* octant of u from the sign bits (-0.0 counts as negative; only picks the lead plane) */
             oct = (polycc_bits(u[0]) >> 31) | ((polycc_bits(u[1]) >> 30) & 2u) | ((polycc_bits(u[2]) >> 29) & 4u);
-            if (!polycc_softmax_poly(&scene->planes[P->first], P->count, P->lead[oct], px, py, pz, kappa, neg_cut, T,
+            if (!polycc_softmax_poly(base, cnt, POLYCC_META_LEAD(meta, oct), nrm, q, px, py, pz, kappa, neg_cut, T,
                                      &a, ga)) {
                 continue;
             }

@@ -1,7 +1,8 @@
 /*
  * Bare-metal bit-exactness test of the polycc kernel (qemu -M netduinoplus2, semihosting).
  *
- * Reads  scene.bin   the flat scene image of polycc/scene_layout.py (header, clusters, polys, planes)
+ * Reads  scene.bin   the flat scene image of polycc/scene_layout.py (header, clusters, polys, planes,
+ *                    normals)
  *        states.bin  5 float params (kappa, radius, beta, c_clf, v_max), uint32 n, then n records
  *                    of 6 floats (x[3], goal[3])
  * Writes out.bin     n polycc_out_t records (44 bytes each), exactly as the kernel filled them.
@@ -29,7 +30,7 @@ int main(void)
 {
     polycc_scene_t scene;
     polycc_params_t params;
-    uint32_t head[6], n, done = 0;
+    uint32_t head[8], n, done = 0;
     const uint8_t *base = (const uint8_t *)scene_buf;
     int fs, fi, fo;
 
@@ -44,14 +45,18 @@ int main(void)
     scene.n_clusters = head[1];
     scene.n_polys = head[2];
     scene.n_planes = head[3];
-    memcpy(&scene.coord_bound, &head[4], 4);
-    memcpy(&scene.log_lmax, &head[5], 4);
+    scene.n_normals = head[4];
+    memcpy(&scene.quantum, &head[5], 4);
+    memcpy(&scene.coord_bound, &head[6], 4);
+    memcpy(&scene.log_lmax, &head[7], 4);
     base += sizeof head;
     scene.clusters = (const polycc_cluster_t *)(const void *)base;
     base += POLYCC_CLUSTER_BYTES * scene.n_clusters;
     scene.polys = (const polycc_poly_t *)(const void *)base;
     base += POLYCC_POLY_BYTES * scene.n_polys;
     scene.planes = (const polycc_plane_t *)(const void *)base;
+    base += POLYCC_PLANE_BYTES * scene.n_planes;
+    scene.normals = (const polycc_normal_t *)(const void *)base;
 
     fi = semihost_open("states.bin", 1);
     fo = semihost_open("out.bin", 5);
