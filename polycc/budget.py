@@ -1,17 +1,25 @@
 """Budgets: choose the cover H^n, reduce and quantize it so it fits flash and compute limits.
 
-Pipeline for one candidate n (every step outward, so every occupied voxel stays inside):
+Pipeline for one candidate (n, T), T the cap of the shared normal table (None = uncapped):
 
 1. materialise H^n from the merge family;
 2. if its half-planes exceed the capacity, drop planes across all polytopes, cheapest
    added volume first (:mod:`polycc.reduce`);
-3. round each half-plane to float32 with |n| <= 1 and the offset rounded up over the
-   polytope's vertices (:mod:`polycc.quantize`);
-4. pack into the kernel's layout and measure conservativeness Vol(union)/Vol(V+) by
-   Monte Carlo (:mod:`polycc.union_volume`).
+3. pack into the kernel's format 3 (:func:`polycc.scene_layout.pack_scene`): normals snapped
+   to the shared table (capped at T by spherical k-means), offsets rounded outward over the
+   exact hull vertices of each polytope of H^n, int16 in power-of-two quanta;
+4. measure conservativeness Vol(union)/Vol(V+) of the decoded polytopes by Monte Carlo
+   (:mod:`polycc.union_volume`).
 
-Selection: the least conservative candidate among the largest n that fits without
-reduction and a few larger n that fit only after reduction.
+Flash bytes are exact (:func:`polycc.scene_layout.layout_bytes`):
+48 + 4 planes + 16 n + 32 clusters + 12 normals.  The half-plane capacity of (n, T) is
+(flash - 48 - 16 n - 32 C(n) - 12 T) // 4, with T = the number of distinct (snapped) normals
+of H^n before reduction for the uncapped table (reduction only removes planes, so the stored
+table is never larger).  A small T buys half-planes at 12 B per dropped normal but snaps
+every plane to a coarser direction set: which one wins is measured, candidate by candidate.
+
+Selection: the least conservative candidate among, for each T, the largest n that fits
+without reduction, a few larger n that fit only after reduction and a few smaller n.
 """
 
 from __future__ import annotations
@@ -24,14 +32,13 @@ import numpy as np
 
 from polycc.cover_family import CoverFamily
 from polycc.errors import PolyccError
-from polycc.quantize import quantize_float32
 from polycc.reduce import MIN_PLANES, reduce_planes
-from polycc.scene_layout import CLUSTER_BYTES, HEADER, PLANE_BYTES, POLY_BYTES, PackedScene, pack_scene
+from polycc.scene_layout import DEFAULT_NORMAL_GRID, PLANE_BYTES, PackedScene, layout_bytes, n_clusters_for, pack_scene
 from polycc.union_volume import union_volume
 
-ROOT_BYTES = HEADER.size + 12  # root record on the Cortex-M4 (three 32-bit pointers)
 REDUCTION_FACTORS = (1.5, 2.0, 3.0, 4.0, 6.0)  # candidate n as multiples of the no-reduction n
 CURVE_FACTORS = (0.5, 0.25, 0.1)  # smaller n also evaluated, for the trade-off curve
+NORMAL_CAPS = (None, 1024, 512, 256)  # normal-table caps T tried (None = one entry per distinct normal)
 
 
 @dataclass
@@ -44,9 +51,9 @@ class Budget:
     max_halfplanes: int | None = None
     rate_cycles: float | None = None
 
-    def caps(self, n: int) -> dict[str, int]:
-        """Half-plane capacity for n polytopes, per budget."""
-        caps = {"flash": (self.flash_bytes - ROOT_BYTES - n * POLY_BYTES - n_clusters(n) * CLUSTER_BYTES) // PLANE_BYTES}
+    def caps(self, n: int, n_normals: int) -> dict[str, int]:
+        """Half-plane capacity for n polytopes and a normal table of n_normals entries, per budget."""
+        caps = {"flash": (self.flash_bytes - data_bytes(n, 0, n_normals)) // PLANE_BYTES}
         if self.max_halfplanes is not None:
             caps["halfplanes"] = int(self.max_halfplanes)
         if self.rate_cycles is not None:
@@ -55,32 +62,33 @@ class Budget:
             caps["rate"] = plane_budget(self.rate_cycles, n)
         return caps
 
-    def capacity(self, n: int) -> int:
-        return min(self.caps(n).values())
+    def capacity(self, n: int, n_normals: int) -> int:
+        return min(self.caps(n, n_normals).values())
 
 
-def n_clusters(n: int) -> int:
-    """Culling clusters pack_scene makes for n polytopes (its median splits depend on n only)."""
-    leaf = max(4, math.ceil(math.sqrt(n)))
-    count, todo = 0, [n]
-    while todo:
-        m = todo.pop()
-        if m <= leaf:
-            count += 1
-        else:
-            todo += [m - m // 2, m // 2]
-    return count
+def data_bytes(n_polys: int, n_planes: int, n_normals: int) -> int:
+    """Exact flash bytes of a packed scene with these counts (clusters follow from n_polys)."""
+    return layout_bytes(n_polys, n_planes, n_clusters_for(n_polys), n_normals)
 
 
-def data_bytes(n_polys: int, n_planes: int) -> int:
-    return ROOT_BYTES + n_polys * POLY_BYTES + n_clusters(n_polys) * CLUSTER_BYTES + n_planes * PLANE_BYTES
+def normal_keys(planes: np.ndarray, grid: int = DEFAULT_NORMAL_GRID) -> np.ndarray:
+    """Integer id per half-plane row of the shared-table entry pack_scene snaps it to
+    (direction m / |m|, m = round(grid n) / gcd), vectorised."""
+    m = np.rint(np.asarray(planes)[:, :3] * grid).astype(np.int64)
+    g = np.gcd.reduce(np.abs(m), axis=1)
+    g[g == 0] = 1
+    m //= g[:, None]
+    _, ids = np.unique(m, axis=0, return_inverse=True)
+    return ids.ravel()
 
 
 @dataclass
 class Candidate:
     n: int
+    max_normals: int | None  # table cap T passed to pack_scene (None = uncapped)
     packed: PackedScene
     planes_before: int  # half-planes of H^n before reduction
+    normals_before: int  # distinct snapped normals of H^n before reduction
     dropped: int
     union_volume: float
     union_ci: float
@@ -91,6 +99,10 @@ class Candidate:
     @property
     def n_planes(self) -> int:
         return self.packed.n_planes
+
+    @property
+    def n_normals(self) -> int:
+        return self.packed.n_normals
 
     @property
     def bytes(self) -> int:
@@ -112,37 +124,75 @@ def plane_counts(family: CoverFamily) -> np.ndarray:
     return total
 
 
-def realise(family: CoverFamily, n: int, cap: int, occupied_volume: float, mc_samples: int, seed: int = 0) -> Candidate | None:
-    """Reduce, quantize, pack and measure H^n under a half-plane capacity; None if it cannot fit."""
+class _Normals:
+    """Distinct snapped normals of H^n, for any n, from one vectorised key per family plane."""
+
+    def __init__(self, family: CoverFamily):
+        self.family = family
+        self.keys = normal_keys(family.planes) if len(family.planes) else np.zeros(0, np.int64)
+        self.total = int(self.keys.max()) + 1 if self.keys.size else 0
+        self._cache: dict[int, int] = {}
+
+    def count(self, n: int) -> int:
+        if n not in self._cache:
+            f = self.family
+            k = f.active_nodes(n)
+            idx = np.concatenate([np.arange(f.plane_ptr[i], f.plane_ptr[i + 1]) for i in k])
+            self._cache[n] = int(np.unique(self.keys[idx]).size)
+        return self._cache[n]
+
+
+def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget, normals_before: int,
+            occupied_volume: float, mc_samples: int, seed: int = 0) -> Candidate | None:
+    """Reduce, pack (format 3) and measure H^n with table cap T; None if it cannot fit."""
     polys = family.materialise(n)
     before = sum(len(p.halfplanes) for p in polys)
-    red = reduce_planes([(p.halfplanes, p.vertices) for p in polys], cap)
-    if red is None:
+    t_eff = normals_before if max_normals is None else min(max_normals, normals_before)
+    caps = budget.caps(n, t_eff)
+    cap = min(caps.values())
+    verts = [p.vertices for p in polys]
+    for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
+        if cap < MIN_PLANES * n:
+            return None
+        red = reduce_planes([(p.halfplanes, p.vertices) for p in polys], cap)
+        if red is None:
+            return None
+        packed = pack_scene(red[0], verts, max_normals=max_normals)
+        over_planes = packed.n_planes - min(caps.values())
+        over_bytes = packed.flash_bytes() - budget.flash_bytes
+        if over_planes <= 0 and over_bytes <= 0:
+            break
+        cap -= max(over_planes, -(-over_bytes // PLANE_BYTES), 1)
+    else:
         return None
-    reduced, _ = red
-    stored = [quantize_float32(h, p.vertices) for h, p in zip(reduced, polys)]
-    packed = pack_scene(stored)
-    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes), "byte model out of date with pack_scene"
-    # Bounding boxes of the stored polytopes from their (enlarged) vertices.
+    # The byte model is exact and the table can only shrink (reduction removes planes, merging
+    # removes duplicates, unused entries are dropped).
+    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals), "byte model out of date"
+    assert packed.n_normals <= t_eff or max_normals is not None and packed.n_normals <= max_normals
+    assert packed.flash_bytes() <= budget.flash_bytes
+    order = packed.order if packed.order is not None else np.arange(packed.n_polys)
     from polycc.reduce import polytope_vertices
 
+    stored = [h.astype(np.float64) for h in packed.polytopes()]
     boxes = []
-    order = packed.order if packed.order is not None else np.arange(packed.n_polys)
-    for h, p in zip(packed.polytopes(), [polys[i] for i in order]):
-        v = polytope_vertices(h.astype(np.float64), p.vertices.mean(axis=0))
+    for h, p in zip(stored, [polys[i] for i in order]):
+        v = polytope_vertices(h, p.vertices.mean(axis=0))
         if v is None:  # cannot happen for a packed (bounded) polytope; be loud if it does
             raise PolyccError(f"internal: stored polytope of node {p.node} is unbounded")
         boxes.append((v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9))
-    vol, ci = union_volume([h.astype(np.float64) for h in packed.polytopes()], boxes, samples=mc_samples, seed=seed)
-    return Candidate(n, packed, before, before - packed.n_planes, vol, ci, vol / occupied_volume, ci / occupied_volume)
+    vol, ci = union_volume(stored, boxes, samples=mc_samples, seed=seed)
+    return Candidate(n, max_normals, packed, before, normals_before, before - packed.n_planes, vol, ci,
+                     vol / occupied_volume, ci / occupied_volume, caps)
 
 
-def candidate_ns(family: CoverFamily, budget: Budget) -> tuple[list[int], int]:
-    """(n values worth evaluating, n0 = largest n that fits with no reduction, or 0)."""
+def candidate_ns(family: CoverFamily, budget: Budget, table_bound: Callable[[int], int],
+                 counts: np.ndarray | None = None) -> tuple[list[int], int]:
+    """(n values worth evaluating, n0 = largest n that fits with no reduction, or 0), for a
+    normal table of at most table_bound(n) entries."""
     N = family.n_max
-    counts = plane_counts(family)
+    counts = plane_counts(family) if counts is None else counts
     ns = np.arange(1, N + 1)
-    caps = np.array([budget.capacity(int(n)) for n in ns])
+    caps = np.array([budget.capacity(int(n), table_bound(int(n))) for n in ns])
     fits = counts[1:] <= caps
     n0 = int(ns[fits].max()) if fits.any() else 0
     if n0 == N:
@@ -166,26 +216,39 @@ def select(
     budget: Budget,
     mc_samples: int = 100_000,
     progress: Callable[[int, int], None] | None = None,
+    normal_caps: tuple = NORMAL_CAPS,
 ) -> tuple[Candidate, list[Candidate], str]:
-    """Best candidate, every evaluated candidate, and the name of the binding budget."""
+    """Best candidate, every evaluated candidate, and the name of the binding budget.
+
+    Candidates are pairs (n, T) over the table caps ``normal_caps``; a cap T is only tried at n
+    where H^n has more than T distinct normals (otherwise it is the uncapped table)."""
     occ_vol = len(family.grid_indices) * family.voxel_size**3
-    ns, n0 = candidate_ns(family, budget)
+    normals = _Normals(family)
+    counts = plane_counts(family)
+    pairs: list[tuple[int, int | None]] = []
+    for T in normal_caps:
+        # Upper bound on the table of H^n for the scan over every n (exact counts at realise).
+        cap_T = normals.total if T is None else min(T, normals.total)
+        ns, _ = candidate_ns(family, budget, lambda n: min(cap_T, int(counts[n])), counts)
+        for n in ns:
+            if T is not None and normals.count(n) <= T:
+                continue  # the table is not capped at this n: same as uncapped
+            pairs.append((n, T))
+    pairs = sorted(set(pairs), key=lambda p: (p[0], -1 if p[1] is None else -p[1]))
     done: list[Candidate] = []
-    for i, n in enumerate(ns):
-        c = realise(family, n, budget.capacity(n), occ_vol, mc_samples)
+    for i, (n, T) in enumerate(pairs):
+        c = realise(family, n, T, budget, normals.count(n), occ_vol, mc_samples)
         if c is not None:
-            c.caps = budget.caps(n)
             done.append(c)
         if progress:
-            progress(i + 1, len(ns))
+            progress(i + 1, len(pairs))
     if not done:
         raise PolyccError(impossible_budget_message(family, budget))
     best = min(done, key=lambda c: (c.conservativeness, -c.n))
-    if best.n == family.n_max and best.dropped == 0:
+    if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
         binding = "none (the whole sub-cover fits)"
     else:
-        caps = best.caps
-        binding = min(caps, key=caps.get)
+        binding = min(best.caps, key=best.caps.get)
     return best, done, binding
 
 
@@ -197,12 +260,12 @@ def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
         if reduce_planes([(p1.halfplanes, p1.vertices)], cap) is not None:
             need_planes = cap
             break
-    need = data_bytes(1, need_planes)
+    need = data_bytes(1, need_planes, need_planes)
     parts = [f"even one polytope needs {need_planes} half-planes = {need} bytes ({need / 1024:.3f} KiB)"]
     if budget.flash_bytes < need:
         parts.append(f"--flash-kb {budget.flash_bytes / 1024:g} is too small: use --flash-kb {math.ceil(need / 1024 * 100) / 100:g} or more")
     if budget.max_halfplanes is not None and budget.max_halfplanes < need_planes:
         parts.append(f"--max-halfplanes {budget.max_halfplanes} is too small: use {need_planes} or more")
-    if budget.rate_cycles is not None and budget.caps(1)["rate"] < need_planes:
+    if budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:
         parts.append("--rate-hz is too high for even one polytope: lower it")
     return "; ".join(parts)

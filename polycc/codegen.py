@@ -75,14 +75,18 @@ def render_header(packed: PackedScene, meta: dict) -> str:
         n_clusters=packed.n_clusters,
         n_polys=packed.n_polys,
         n_planes=packed.n_planes,
+        n_normals=packed.n_normals,
+        quantum=c_float(packed.quantum),
+        quantum_text=f"{float(packed.quantum):g}",
         data_bytes=packed.flash_bytes(),
         budget_bytes=int(meta["budget_bytes"]),
         max_planes=int(meta["max_planes"]),
         binding=meta.get("binding", "none"),
         conservativeness=meta.get("conservativeness_text", "n/a"),
         layout_format=SCENE_FORMAT,
+        normals=[c_record(r) for r in packed.normals],
         planes=[c_record(r) for r in packed.planes],
-        polys=[c_record(r) for r in packed.polys],
+        polys=[c_record(r) for r in packed.polys_raw],
         clusters=[c_record(r) for r in packed.clusters],
         coord_bound=c_float(packed.coord_bound),
         log_lmax=c_float(packed.log_lmax),
@@ -109,8 +113,8 @@ def manifest(packed: PackedScene, meta: dict) -> dict:
 def write_outputs(out_dir: str | Path, packed: PackedScene | list, meta: dict | None = None) -> dict:
     """Write ``polytopes.h`` and ``manifest.json`` into ``out_dir``; returns the manifest.
 
-    ``packed`` may also be a list of (H, 4) half-plane arrays whose values are already
-    float32-exact and outward-rounded (tests); they are packed as they are.
+    ``packed`` may also be a list of (H, 4) half-plane arrays with unit normals (tests);
+    :func:`pack_scene` quantizes them outward (vertices from qhull).
     ``meta`` defaults: kappa 100, budgets equal to what is used.
     """
     if not isinstance(packed, PackedScene):

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from polycc.scene_layout import PackedScene
+from polycc.scene_layout import PackedScene, n_clusters_for
 
 CPU_HZ = 168e6
 DEFAULT_CPU_SHARE = 0.2
@@ -42,9 +42,7 @@ def cycle_budget(rate_hz: float, cpu_share: float = DEFAULT_CPU_SHARE) -> float:
 def plane_budget(avail_cycles: float, n_polys: int) -> int:
     """Half-planes whose worst-case evaluation with ``n_polys`` polytopes (all entered and
     evaluated) fits in ``avail_cycles``."""
-    from polycc.budget import n_clusters
-
-    avail = avail_cycles - cycles(n_clusters(n_polys), n_polys, n_polys, 0)
+    avail = avail_cycles - cycles(n_clusters_for(n_polys), n_polys, n_polys, 0)
     return max(0, int(avail // PER_PLANE_CYCLES))
 
 

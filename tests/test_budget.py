@@ -8,8 +8,6 @@ import subprocess
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
 from conftest import REPO
@@ -17,7 +15,6 @@ from polycc.budget import Budget, plane_counts, select
 from polycc.cli import main
 from polycc.codegen import c_float, load_manifest_polytopes
 from polycc.occupancy_grid import OccupancyGrid
-from polycc.quantize import f32_unit_normals, quantize_float32
 from polycc.reduce import polytope_vertices, reduce_planes
 from polycc.scene_layout import hull_halfplanes
 
@@ -26,25 +23,6 @@ def random_hull(rng, n=25, scale=0.3):
     pts = rng.normal(size=(n, 3)) * scale + rng.uniform(-3, 3, 3)
     h = ConvexHull(pts)
     return hull_halfplanes(pts), pts[h.vertices]
-
-
-@settings(max_examples=60)
-@given(seed=st.integers(0, 2**32 - 1), scale=st.floats(1e-3, 50.0))
-def test_quantized_halfplanes_contain_every_vertex(seed, scale):
-    rng = np.random.default_rng(seed)
-    h, v = random_hull(rng, scale=scale)
-    q = quantize_float32(h, v).astype(np.float64)
-    assert q.dtype == np.float64 and np.all(np.einsum("ij,ij->i", q[:, :3], q[:, :3]) <= 1.0)
-    # exact check in float64 of float32 values: n_q . v <= d_q for every vertex
-    assert np.all(v @ q[:, :3].T <= q[:, 3])
-
-
-def test_unit_normals_never_longer_than_one():
-    rng = np.random.default_rng(1)
-    n = rng.normal(size=(100_000, 3))
-    q = f32_unit_normals(n).astype(np.float64)
-    assert np.all(np.einsum("ij,ij->i", q, q) <= 1.0)
-    assert np.all(np.abs(np.linalg.norm(q, axis=1) - 1) < 1e-6)
 
 
 def test_reduction_only_enlarges_and_stays_bounded():
@@ -117,6 +95,20 @@ def test_build_fits_budget_covers_every_voxel_and_compiles(tmp_path, built4, kb)
         subprocess.run(["arm-none-eabi-gcc", "-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-Os",
                         "-std=gnu11", "-Wall", "-Wdouble-promotion", "-Werror", "-fno-math-errno", "-ffp-contract=off",
                         f"-I{REPO / 'firmware_app' / 'src'}", f"-I{out}", "-c", str(src), "-o", str(out / "t.o")], check=True)
+
+
+def test_byte_model_is_exact_and_within_budget(built4):
+    """Predicted bytes (layout formula from the counts) == what the header declares, <= budget."""
+    from polycc.budget import data_bytes
+    out = built4 / "out4"
+    st_ = json.loads((out / "manifest.json").read_text())["stats"]
+    assert st_["bytes"] == data_bytes(st_["n"], st_["halfplanes"], st_["normals"]) <= 4 * 1024
+    assert st_["normals"] <= st_["normals_before_reduction"] or st_["normal_table_cap"] is not None
+    head = (out / "polytopes.h").read_text()
+    assert f"#define POLYCC_SCENE_DATA_BYTES {st_['bytes']}u" in head
+    assert f"#define POLYCC_SCENE_N_NORMALS {st_['normals']}u" in head
+    for c in st_["candidates"]:
+        assert c["bytes"] <= 4 * 1024
 
 
 def test_build_is_deterministic(tmp_path, built4):
