@@ -3,10 +3,14 @@
     cycles = FIXED + PER_CLUSTER * clusters + PER_ENTERED * polytopes entered
              + PER_POLY * polytopes evaluated + PER_PLANE * their half-planes
 
-Coefficients are fitted (upper end of the range) to the worst-case rows of
-``bench/bench_kernel.py``, which runs the ARM build of ``polycc_kernel.c`` instruction by
-instruction (unicorn + capstone, documented Cortex-M4 cycle model): e.g. 150 polytopes /
-2000 half-planes = 146k cycles (872 us), 150 / 3720 = 193k cycles (1151 us).
+Coefficients are fitted to the upper end of the cycle range of the worst-case rows of
+``bench/bench_kernel.py`` for scene format 3 (quantized records, shared normal table), which
+runs the ARM build of ``polycc_kernel.c`` instruction by instruction (unicorn + capstone,
+documented Cortex-M4 cycle model), and rounded so that the model is at or above every row
+(0-10 % above): e.g. 150 polytopes / 1999 half-planes measured 176.7k cycles (1051.6 us),
+model 180.9k; 150 / 3720: 297.6k (1771.6 us), model 301.4k; 150 / 9734 (64 KiB filled):
+707.6k (4212 us), model 722.3k.  Format 3 costs about 70 cycles per evaluated half-plane
+(index load, table address, int->float of the offset) against ~28 in format 2.
 
 * worst case: every polytope entered and evaluated;
 * typical: the float32 reference (:func:`polycc.barrier.barrier` with ``stats``) counts the
@@ -22,11 +26,11 @@ from polycc.scene_layout import PackedScene, n_clusters_for
 
 CPU_HZ = 168e6
 DEFAULT_CPU_SHARE = 0.2
-FIXED_CYCLES = 2300.0
-PER_CLUSTER_CYCLES = 40.0
+FIXED_CYCLES = 2500.0
+PER_CLUSTER_CYCLES = 60.0
 PER_ENTERED_CYCLES = 60.0
-PER_POLY_CYCLES = 540.0
-PER_PLANE_CYCLES = 27.5
+PER_POLY_CYCLES = 190.0
+PER_PLANE_CYCLES = 70.0
 
 
 def cycles(n_clusters: float, entered: float, evaluated: float, planes: float) -> float:
