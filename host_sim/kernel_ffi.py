@@ -203,6 +203,78 @@ def step_batch(scene: HostScene, params: Params, x: np.ndarray, goal: np.ndarray
     return out
 
 
+# A generated polytopes.h compiled with the kernel: the scene the C reads is the header's own
+# `polycc_scene`, and its bytes can be dumped for comparison with PackedScene.to_bytes().
+GENERATED_CDEF = CDEF + """
+const polycc_scene_t *polycc_generated_scene(void);
+size_t polycc_generated_image(unsigned char *out, size_t cap);
+"""
+GENERATED_SOURCE = """
+#include <string.h>
+#include "polytopes.h"
+""" + BATCH_SOURCE + """
+const polycc_scene_t *polycc_generated_scene(void) { return &polycc_scene; }
+/* The flat image of PackedScene.to_bytes(): 8 header words, clusters, polys, planes, normals. */
+size_t polycc_generated_image(unsigned char *out, size_t cap)
+{
+    const polycc_scene_t *s = &polycc_scene;
+    size_t parts[5], n = 0, i;
+    const void *src[5];
+    src[0] = s; parts[0] = 8u * 4u;
+    src[1] = s->clusters; parts[1] = s->n_clusters * sizeof(polycc_cluster_t);
+    src[2] = s->polys; parts[2] = s->n_polys * sizeof(polycc_poly_t);
+    src[3] = s->planes; parts[3] = s->n_planes * sizeof(polycc_plane_t);
+    src[4] = s->normals; parts[4] = s->n_normals * sizeof(polycc_normal_t);
+    for (i = 0; i < 5u; ++i) {
+        if (out != NULL && n + parts[i] <= cap) {
+            memcpy(out + n, src[i], parts[i]);
+        }
+        n += parts[i];
+    }
+    return n;
+}
+"""
+
+
+def load_generated(header: Path):
+    """Build (once per header content) and import the kernel compiled together with a generated
+    ``polytopes.h`` (same flags as :func:`load`); race-safe under pytest-xdist like :func:`load`."""
+    header = Path(header)
+    text = header.read_bytes()
+
+    def prepare(tmp: Path):
+        inc = tmp / "generated"
+        inc.mkdir()
+        (inc / "polytopes.h").write_bytes(text)
+        return [inc]
+
+    return build_cffi("_polycc_gen", GENERATED_CDEF, GENERATED_SOURCE, KERNEL_SOURCES + KERNEL_HEADERS, [SRC],
+                      HOST_CFLAGS, key_parts=[text], prepare=prepare)
+
+
+def generated_image(mod) -> bytes:
+    """The bytes the generated header holds, in PackedScene.to_bytes() order."""
+    n = mod.lib.polycc_generated_image(mod.ffi.NULL, 0)
+    buf = mod.ffi.new("unsigned char[]", n)
+    assert mod.lib.polycc_generated_image(buf, n) == n
+    return bytes(mod.ffi.buffer(buf, n))
+
+
+def generated_step_batch(mod, params: Params, x: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """``polycc_step`` on the generated header's own ``polycc_scene`` for every row (OUT_DTYPE)."""
+    ffi = mod.ffi
+    p = ffi.new("polycc_params_t *")
+    p.kappa, p.radius, p.beta, p.c_clf, p.v_max = (float(v) for v in params.f32())
+    x = np.ascontiguousarray(np.asarray(x, np.float32).reshape(-1, 3))
+    goal = np.ascontiguousarray(np.broadcast_to(np.asarray(goal, np.float32).reshape(-1, 3), x.shape))
+    out = np.zeros(len(x), OUT_DTYPE)
+    assert OUT_DTYPE.itemsize == ffi.sizeof("polycc_out_t")
+    mod.lib.polycc_host_step_batch(mod.lib.polycc_generated_scene(), p, ffi.cast("const float *", ffi.from_buffer(x)),
+                                   ffi.cast("const float *", ffi.from_buffer(goal)), len(x),
+                                   ffi.cast("polycc_out_t *", ffi.from_buffer(out)))
+    return out
+
+
 def _unary_batch(fn_name: str, x: np.ndarray) -> np.ndarray:
     m = load()
     ffi = m.ffi

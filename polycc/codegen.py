@@ -111,7 +111,11 @@ def manifest(packed: PackedScene, meta: dict) -> dict:
 
 
 def write_outputs(out_dir: str | Path, packed: PackedScene | list, meta: dict | None = None) -> dict:
-    """Write ``polytopes.h`` and ``manifest.json`` into ``out_dir``; returns the manifest.
+    """Write ``polytopes.h``, ``manifest.json`` and ``scene.bin`` into ``out_dir``; returns the manifest.
+
+    ``scene.bin`` is :meth:`PackedScene.to_bytes` (read it back with
+    :func:`polycc.scene_layout.scene_from_bytes`): the same bytes as the header's arrays, for the
+    host simulator and the tests.
 
     ``packed`` may also be a list of (H, 4) half-plane arrays with unit normals (tests);
     :func:`pack_scene` quantizes them outward (vertices from qhull).
@@ -128,6 +132,7 @@ def write_outputs(out_dir: str | Path, packed: PackedScene | list, meta: dict | 
     (out / "polytopes.h").write_text(render_header(packed, meta))
     man = manifest(packed, meta)
     (out / "manifest.json").write_text(json.dumps(man, indent=1, sort_keys=False) + "\n")
+    (out / "scene.bin").write_bytes(packed.to_bytes())
     return man
 
 

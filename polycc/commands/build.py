@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
         ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"
                                             + ("" if args.rate_hz else "  (bound it with --rate-hz)")),
         ("time: occupancy / cover / budget", f"{occ.stats.get('time_s', 0):.1f} / {t_cover:.1f} / {t_budget:.1f} s"),
-        ("outputs", f"{out}/polytopes.h, manifest.json, cover.npz, report.png"),
+        ("outputs", f"{out}/polytopes.h, manifest.json, scene.bin, cover.npz, report.png"),
     ]
     print_summary("polycc build", rows)
     console.print(f"build: n = {best.n}, {best.n_planes} half-planes, {best.bytes} bytes -> {out / 'polytopes.h'} "
