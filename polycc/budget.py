@@ -109,10 +109,12 @@ class Candidate:
         return self.packed.flash_bytes()
 
 
-def plane_counts(family: CoverFamily) -> np.ndarray:
-    """counts[n] = total half-planes of H^n for n = 1..N (index 0 unused), from the merge log."""
+def plane_counts(family: CoverFamily, per: np.ndarray | None = None) -> np.ndarray:
+    """counts[n] = total half-planes of H^n for n = 1..N (index 0 unused), from the merge log.
+    ``per`` (one count per node) replaces the family's plane counts (e.g. after merging the
+    planes whose snapped normals coincide)."""
     N = family.n_max
-    per = np.diff(family.plane_ptr).astype(np.int64)
+    per = np.diff(family.plane_ptr).astype(np.int64) if per is None else np.asarray(per, np.int64)
     total = np.empty(N + 1, np.int64)
     total[N] = per[:N].sum()
     if N > 1:
@@ -132,6 +134,10 @@ class _Normals:
         self.keys = normal_keys(family.planes) if len(family.planes) else np.zeros(0, np.int64)
         self.total = int(self.keys.max()) + 1 if self.keys.size else 0
         self._cache: dict[int, int] = {}
+        # planes per node once rows with the same snapped normal are merged (as pack_scene does)
+        node = np.repeat(np.arange(len(family.plane_ptr) - 1), np.diff(family.plane_ptr))
+        pairs = np.unique(np.c_[node, self.keys], axis=0) if self.keys.size else np.zeros((0, 2), np.int64)
+        self.merged_per_node = np.bincount(pairs[:, 0], minlength=len(family.plane_ptr) - 1)
 
     def count(self, n: int) -> int:
         if n not in self._cache:
@@ -151,10 +157,16 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     caps = budget.caps(n, t_eff)
     cap = min(caps.values())
     verts = [p.vertices for p in polys]
+    # Merge the planes that pack_scene would store as one (same snapped normal) before reducing,
+    # so that the capacity is spent on planes that are really stored.
+    rows = []
+    for p in polys:
+        _, first = np.unique(normal_keys(p.halfplanes), return_index=True)
+        rows.append(p.halfplanes[np.sort(first)])
     for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
         if cap < MIN_PLANES * n:
             return None
-        red = reduce_planes([(p.halfplanes, p.vertices) for p in polys], cap)
+        red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap)
         if red is None:
             return None
         packed = pack_scene(red[0], verts, max_normals=max_normals)
@@ -185,20 +197,31 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
                      vol / occupied_volume, ci / occupied_volume, caps)
 
 
-def candidate_ns(family: CoverFamily, budget: Budget, table_bound: Callable[[int], int],
+def _largest(lo: int, hi: int, ok: Callable[[int], bool]) -> int:
+    """Largest n in [lo, hi] with ok(n) by binary search (ok is taken as monotone), lo - 1 if none."""
+    if hi < lo or not ok(lo):
+        return lo - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if ok(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+def candidate_ns(family: CoverFamily, budget: Budget, table: Callable[[int], int],
                  counts: np.ndarray | None = None) -> tuple[list[int], int]:
     """(n values worth evaluating, n0 = largest n that fits with no reduction, or 0), for a
-    normal table of at most table_bound(n) entries."""
+    normal table of table(n) entries.  Plane counts and capacities are nearly monotone in n, so
+    n0 and the largest n that can fit after reduction are found by binary search."""
     N = family.n_max
     counts = plane_counts(family) if counts is None else counts
-    ns = np.arange(1, N + 1)
-    caps = np.array([budget.capacity(int(n), table_bound(int(n))) for n in ns])
-    fits = counts[1:] <= caps
-    n0 = int(ns[fits].max()) if fits.any() else 0
+    cap = lambda n: budget.capacity(n, table(n))  # noqa: E731
+    n0 = max(0, _largest(1, N, lambda n: int(counts[n]) <= cap(n)))
     if n0 == N:
         return sorted({N} | {max(1, int(N * f)) for f in CURVE_FACTORS}), n0
-    feasible_hi = ns[caps >= MIN_PLANES * ns]
-    n_hi = int(feasible_hi.max()) if feasible_hi.size else 0
+    n_hi = max(0, _largest(1, N, lambda n: cap(n) >= MIN_PLANES * n))
     cands = {n0} if n0 else set()
     cands |= {max(1, int(n0 * f)) for f in CURVE_FACTORS if n0}
     base = max(n0, 1)
@@ -224,12 +247,11 @@ def select(
     where H^n has more than T distinct normals (otherwise it is the uncapped table)."""
     occ_vol = len(family.grid_indices) * family.voxel_size**3
     normals = _Normals(family)
-    counts = plane_counts(family)
+    counts = plane_counts(family, normals.merged_per_node)
     pairs: list[tuple[int, int | None]] = []
     for T in normal_caps:
-        # Upper bound on the table of H^n for the scan over every n (exact counts at realise).
-        cap_T = normals.total if T is None else min(T, normals.total)
-        ns, _ = candidate_ns(family, budget, lambda n: min(cap_T, int(counts[n])), counts)
+        table = normals.count if T is None else (lambda n, T=T: min(T, normals.count(n)))
+        ns, _ = candidate_ns(family, budget, table, counts)
         for n in ns:
             if T is not None and normals.count(n) <= T:
                 continue  # the table is not capped at this n: same as uncapped
