@@ -156,3 +156,20 @@ def test_rate_budget_bounds_worst_case_time(tmp_path, scenes_dir):
     man = json.loads((tmp_path / "out64" / "manifest.json").read_text())
     assert man["stats"]["modelled_us"]["worst_us"] <= 0.1 / 1000 * 1e6
     assert man["stats"]["binding_budget"] == "rate"
+
+
+def test_capped_normal_tables_fit_and_are_compared(built4):
+    """Candidates over (n, T): a capped table holds at most T normals, every candidate fits the
+    budget exactly by the layout formula, and the choice is the least conservative."""
+    from polycc.budget import data_bytes
+    from polycc.cover_family import CoverFamily
+    fam = CoverFamily.load(built4 / "out4")
+    budget = Budget(3 * 1024)
+    best, cands, binding = select(fam, budget, mc_samples=5000, normal_caps=(None, 24, 12))
+    assert any(c.max_normals is not None for c in cands), "a capped table was tried"
+    for c in cands:
+        assert c.bytes == data_bytes(c.n, c.n_planes, c.n_normals) <= budget.flash_bytes
+        if c.max_normals is not None:
+            assert c.n_normals <= c.max_normals
+    assert best.conservativeness == min(c.conservativeness for c in cands)
+    assert binding in ("flash", "none (the whole sub-cover fits)")
