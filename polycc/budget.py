@@ -38,7 +38,7 @@ from polycc.union_volume import union_volume
 
 REDUCTION_FACTORS = (1.5, 2.0, 3.0, 4.0, 6.0)  # candidate n as multiples of the no-reduction n
 CURVE_FACTORS = (0.5, 0.25, 0.1)  # smaller n also evaluated, for the trade-off curve
-NORMAL_CAPS = (None, 1024, 512, 256)  # normal-table caps T tried (None = one entry per distinct normal)
+NORMAL_CAPS = (None, 1024, 256, 64)  # normal-table caps T tried (None = one entry per distinct normal)
 
 
 @dataclass
@@ -89,7 +89,8 @@ class Candidate:
     packed: PackedScene
     planes_before: int  # half-planes of H^n before reduction
     normals_before: int  # distinct snapped normals of H^n before reduction
-    dropped: int
+    dropped: int  # half-planes removed by the outward reduction
+    merged: int  # half-planes of H^n stored as one because their snapped normals coincide
     union_volume: float
     union_ci: float
     conservativeness: float
@@ -172,6 +173,7 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
         packed = pack_scene(red[0], verts, max_normals=max_normals)
         over_planes = packed.n_planes - min(caps.values())
         over_bytes = packed.flash_bytes() - budget.flash_bytes
+        dropped = sum(len(h) for h in rows) - sum(len(h) for h in red[0])
         if over_planes <= 0 and over_bytes <= 0:
             break
         cap -= max(over_planes, -(-over_bytes // PLANE_BYTES), 1)
@@ -193,7 +195,7 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
             raise PolyccError(f"internal: stored polytope of node {p.node} is unbounded")
         boxes.append((v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9))
     vol, ci = union_volume(stored, boxes, samples=mc_samples, seed=seed)
-    return Candidate(n, max_normals, packed, before, normals_before, before - packed.n_planes, vol, ci,
+    return Candidate(n, max_normals, packed, before, normals_before, dropped, before - dropped - packed.n_planes, vol, ci,
                      vol / occupied_volume, ci / occupied_volume, caps)
 
 
@@ -269,6 +271,8 @@ def select(
     best = min(done, key=lambda c: (c.conservativeness, -c.n))
     if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
         binding = "none (the whole sub-cover fits)"
+    elif any(c.n > best.n and c.dropped == 0 for c in done):
+        binding = "none (larger n fit, but were not less conservative)"
     else:
         binding = min(best.caps, key=best.caps.get)
     return best, done, binding

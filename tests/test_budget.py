@@ -172,4 +172,4 @@ def test_capped_normal_tables_fit_and_are_compared(built4):
         if c.max_normals is not None:
             assert c.n_normals <= c.max_normals
     assert best.conservativeness == min(c.conservativeness for c in cands)
-    assert binding in ("flash", "none (the whole sub-cover fits)")
+    assert binding == "flash" or binding.startswith("none")
