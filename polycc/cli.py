@@ -20,6 +20,8 @@ COMMAND_MODULES = [
     "cover",
     "verify",
     "build",
+    "sim",
+    "flash",
 ]
 
 
