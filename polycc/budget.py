@@ -26,7 +26,7 @@ from polycc.cover_family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.quantize import quantize_float32
 from polycc.reduce import MIN_PLANES, reduce_planes
-from polycc.scene_layout import CLUSTER_BYTES, HEADER, PLANE_BYTES, POLY_BYTES, PackedScene, pack_scene
+from polycc.scene_layout import CLUSTER_BYTES, HEADER, MAX_POLY_PLANES, PLANE_BYTES, POLY_BYTES, PackedScene, pack_scene
 from polycc.union_volume import union_volume
 
 ROOT_BYTES = HEADER.size + 12  # root record on the Cortex-M4 (three 32-bit pointers)
@@ -116,7 +116,7 @@ def realise(family: CoverFamily, n: int, cap: int, occupied_volume: float, mc_sa
     """Reduce, quantize, pack and measure H^n under a half-plane capacity; None if it cannot fit."""
     polys = family.materialise(n)
     before = sum(len(p.halfplanes) for p in polys)
-    red = reduce_planes([(p.halfplanes, p.vertices) for p in polys], cap)
+    red = reduce_planes([(p.halfplanes, p.vertices) for p in polys], cap, per_polytope=MAX_POLY_PLANES)
     if red is None:
         return None
     reduced, _ = red
@@ -194,7 +194,7 @@ def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
     p1 = family.materialise(1)[0]
     need_planes = len(p1.halfplanes)
     for cap in range(MIN_PLANES, len(p1.halfplanes) + 1):
-        if reduce_planes([(p1.halfplanes, p1.vertices)], cap) is not None:
+        if reduce_planes([(p1.halfplanes, p1.vertices)], cap, per_polytope=MAX_POLY_PLANES) is not None:
             need_planes = cap
             break
     need = data_bytes(1, need_planes)

@@ -164,3 +164,13 @@ def test_rate_budget_bounds_worst_case_time(tmp_path, scenes_dir):
     man = json.loads((tmp_path / "out64" / "manifest.json").read_text())
     assert man["stats"]["modelled_us"]["worst_us"] <= 0.1 / 1000 * 1e6
     assert man["stats"]["binding_budget"] == "rate"
+
+
+def test_per_polytope_plane_limit_is_enforced():
+    """Regression: a donut build at 8 KiB kept a 273-plane polytope; the layout allows 256."""
+    rng = np.random.default_rng(4)
+    polys = [random_hull(rng, n=80) for _ in range(2)]
+    red, _ = reduce_planes(polys, 10_000, per_polytope=20)
+    assert all(len(h) <= 20 for h in red)
+    for (h, v), r in zip(polys, red):
+        assert np.all(v @ r[:, :3].T <= r[:, 3] + 1e-12)
