@@ -21,6 +21,8 @@ COMMAND_MODULES = [
     "verify",
     "build",
     "sim",
+    "sim_device",
+    "fly",
     "flash",
 ]
 
