@@ -271,7 +271,7 @@ def test_fly_end_to_end_against_sim_device(scene_dir, tmp_path):
 
 @pytest.mark.slow
 def test_fly_demo_arena_end_to_end(tmp_path):
-    """The demo arena (out/demo from `make demo`, $POLYCC_DEMO_OUT, or built here at 16 KiB),
+    """The demo arena (out/demo from `make demo`, $POLYCC_DEMO_OUT, or built here at 64 KiB),
     start to goal through the hoop (~8 s of flight)."""
     demo = os.environ.get("POLYCC_DEMO_OUT") or os.path.join(REPO, "out", "demo")
     if not os.path.isfile(os.path.join(demo, "polytopes.h")) or not os.path.isfile(os.path.join(demo, "arena.json")):
@@ -279,7 +279,7 @@ def test_fly_demo_arena_end_to_end(tmp_path):
 
         demo = str(tmp_path / "demo")
         assert polycc_main(["demo-scene", os.path.join(demo, "arena.ply")]) == 0
-        assert polycc_main(["build", os.path.join(demo, "arena.ply"), "--flash-kb", "16", "--mc-samples", "20000",
+        assert polycc_main(["build", os.path.join(demo, "arena.ply"), "--flash-kb", "64", "--mc-samples", "20000",
                             "-o", demo]) == 0
     with open(os.path.join(demo, "arena.json")) as f:
         arena = json.load(f)
