@@ -26,6 +26,7 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/polycc demo-scene $(OUT)/arena.ply
 	$(BIN)/polycc build $(OUT)/arena.ply --flash-kb 64 -o $(OUT)
+	$(BIN)/polycc sim $(OUT) --scene $(OUT)/arena.ply --dynamics crazyflie
 
 test: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_MARK) $(PYTEST_ARGS)

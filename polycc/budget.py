@@ -33,7 +33,7 @@ import numpy as np
 from polycc.cover_family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.reduce import MIN_PLANES, reduce_planes
-from polycc.scene_layout import DEFAULT_NORMAL_GRID, PLANE_BYTES, PackedScene, layout_bytes, n_clusters_for, pack_scene
+from polycc.scene_layout import DEFAULT_NORMAL_GRID, MAX_POLY_PLANES, PLANE_BYTES, PackedScene, layout_bytes, n_clusters_for, pack_scene
 from polycc.union_volume import union_volume
 
 REDUCTION_FACTORS = (1.5, 2.0, 3.0, 4.0, 6.0)  # candidate n as multiples of the no-reduction n
@@ -167,7 +167,7 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
         if cap < MIN_PLANES * n:
             return None
-        red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap)
+        red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES)
         if red is None:
             return None
         packed = pack_scene(red[0], verts, max_normals=max_normals)
@@ -283,7 +283,7 @@ def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
     p1 = family.materialise(1)[0]
     need_planes = len(p1.halfplanes)
     for cap in range(MIN_PLANES, len(p1.halfplanes) + 1):
-        if reduce_planes([(p1.halfplanes, p1.vertices)], cap) is not None:
+        if reduce_planes([(p1.halfplanes, p1.vertices)], cap, per_polytope=MAX_POLY_PLANES) is not None:
             need_planes = cap
             break
     need = data_bytes(1, need_planes, need_planes)

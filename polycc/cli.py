@@ -20,6 +20,10 @@ COMMAND_MODULES = [
     "cover",
     "verify",
     "build",
+    "sim",
+    "sim_device",
+    "fly",
+    "flash",
 ]
 
 

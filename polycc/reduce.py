@@ -66,8 +66,11 @@ def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -
     return np.inf if v is None else max(polytope_volume(v) - volume, 0.0)
 
 
-def reduce_planes(polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int) -> tuple[list[np.ndarray], float] | None:
-    """Drop planes across all polytopes, cheapest added volume first, until the total is <= max_planes.
+def reduce_planes(
+    polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int, per_polytope: int | None = None
+) -> tuple[list[np.ndarray], float] | None:
+    """Drop planes, cheapest added volume first, until the total is <= ``max_planes`` and no
+    polytope has more than ``per_polytope`` planes (the layout's per-polytope limit).
 
     ``polytopes``: (halfplanes (H,4), vertices (V,3)) pairs. Returns (reduced half-plane
     arrays, total added volume m^3), or None if the planes cannot be cut down that far
@@ -79,43 +82,56 @@ def reduce_planes(polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: in
     bounds). Safety does not depend on the costs: every drop is outward and is only
     committed after an exact boundedness check.
     """
+    cap = per_polytope if per_polytope is not None else 1 << 30
     total = sum(len(h) for h, _ in polytopes)
-    if total <= max_planes:
+    if total <= max_planes and all(len(h) <= cap for h, _ in polytopes):
         return [np.asarray(h) for h, _ in polytopes], 0.0
-    if max_planes < MIN_PLANES * len(polytopes):
+    if max_planes < MIN_PLANES * len(polytopes) or cap < MIN_PLANES:
         return None
     planes = [np.asarray(h, np.float64) for h, _ in polytopes]
     ids = [np.arange(len(h)) for h in planes]  # original row of each current plane
     interior = [np.asarray(v, np.float64).mean(axis=0) for _, v in polytopes]
     volume = [polytope_volume(np.asarray(v, np.float64)) for _, v in polytopes]
     version = [0] * len(planes)
-    heap = []
-    for k, h in enumerate(planes):
-        if len(h) <= MIN_PLANES:
-            continue
-        for j in range(len(h)):
-            c = drop_cost(h, j, interior[k], volume[k])
-            if np.isfinite(c):
-                heap.append((c, k, j, 0))
-    heapq.heapify(heap)
     added = 0.0
-    while total > max_planes:
-        if not heap:
+
+    def entries(ks):
+        heap = []
+        for k in ks:
+            if len(planes[k]) <= MIN_PLANES:
+                continue
+            for j in range(len(planes[k])):
+                c = drop_cost(planes[k], j, interior[k], volume[k])
+                if np.isfinite(c):
+                    heap.append((c, k, int(ids[k][j]), version[k]))
+        heapq.heapify(heap)
+        return heap
+
+    def drop_until(heap, done) -> bool:
+        nonlocal added
+        while not done():
+            if not heap:
+                return False
+            c, k, orig, ver = heapq.heappop(heap)
+            rows = np.flatnonzero(ids[k] == orig)
+            if not rows.size or len(planes[k]) <= MIN_PLANES:
+                continue
+            j = int(rows[0])
+            if ver != version[k]:
+                c = drop_cost(planes[k], j, interior[k], volume[k])
+                if np.isfinite(c):
+                    heapq.heappush(heap, (c, k, orig, version[k]))
+                continue
+            planes[k] = np.delete(planes[k], j, axis=0)
+            ids[k] = np.delete(ids[k], j)
+            volume[k] += c
+            version[k] += 1
+            added += c
+        return True
+
+    for k in [k for k in range(len(planes)) if len(planes[k]) > cap]:
+        if not drop_until(entries([k]), lambda k=k: len(planes[k]) <= cap):
             return None
-        c, k, orig, ver = heapq.heappop(heap)
-        rows = np.flatnonzero(ids[k] == orig)
-        if not rows.size or len(planes[k]) <= MIN_PLANES:
-            continue
-        j = int(rows[0])
-        if ver != version[k]:
-            c = drop_cost(planes[k], j, interior[k], volume[k])
-            if np.isfinite(c):
-                heapq.heappush(heap, (c, k, orig, version[k]))
-            continue
-        planes[k] = np.delete(planes[k], j, axis=0)
-        ids[k] = np.delete(ids[k], j)
-        volume[k] += c
-        version[k] += 1
-        added += c
-        total -= 1
+    if not drop_until(entries(range(len(planes))), lambda: sum(len(h) for h in planes) <= max_planes):
+        return None
     return planes, added

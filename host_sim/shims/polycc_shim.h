@@ -1,0 +1,76 @@
+/*
+ * polycc_shim.h -- the host side of the firmware API shims, for Python (cffi) and tests.
+ *
+ * Log and parameter tables: every LOG_GROUP_START..LOG_GROUP_STOP and PARAM_GROUP_START..
+ * PARAM_GROUP_STOP block compiled with POLYCC_SHIM_HOST registers itself at load time.
+ * Groups are kept sorted by name (stable), variables in declaration order, so the TOC is
+ * deterministic.  Index i of shim_log_entry() is the logVarId_t that logGetVarId() returns.
+ */
+#ifndef POLYCC_SHIM_H
+#define POLYCC_SHIM_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+typedef struct shim_toc_entry {
+    const char *group;       /* group name */
+    const char *name;        /* variable name */
+    uint8_t type;            /* the firmware's type byte (LOG_* with LOG_CORE/LOG_BY_FUNCTION bits, or PARAM_* bits) */
+    uint8_t extended_type;   /* params: the extended type byte (PARAM_PERSISTENT >> 8); logs: 0 */
+    void *address;           /* the variable */
+    void (*callback)(void);  /* params: called after a write (may be NULL); logs: NULL */
+} shim_toc_entry_t;
+
+/* Log TOC. */
+int shim_log_count(void);
+int shim_log_entry(int index, shim_toc_entry_t *out); /* 0, or -1 if index is out of range */
+double shim_log_value(int index);                     /* current value as a double (NaN if out of range) */
+
+/* Parameter TOC. */
+int shim_param_count(void);
+int shim_param_entry(int index, shim_toc_entry_t *out);
+int shim_param_index(const char *group, const char *name); /* -1 when absent */
+double shim_param_value(int index);
+/* Writes value converted to the parameter's type (integers truncated toward zero and
+ * clamped to the type's range), then calls its callback.  0, -1 bad index, -2 read-only. */
+int shim_param_set(int index, double value);
+
+/* Size in bytes of a log or param type byte's value (0 if unknown). */
+int shim_log_type_size(uint8_t type);
+int shim_param_type_size(uint8_t type);
+
+/* Simulated time.  shim_reset() also clears the commander record and the debug buffer. */
+void shim_reset(void);
+void shim_set_tick(uint32_t tick); /* FreeRTOS tick (1 ms) */
+uint32_t shim_get_tick(void);
+/* usecTimestamp() returns now_us; the read after it returns now_us + section_us (the cycle
+ * model of the code between two consecutive reads), later reads keep that value. */
+void shim_set_usec(uint64_t now_us, uint32_t section_us);
+
+/* Simulated state estimate: backs the log groups stateEstimate (x, y, z, vx, vy, vz) and
+ * kalman (varX, varY, varZ).  shim_set_kalman_present(0) hides the kalman group from
+ * logGetVarId (as with another estimator). */
+void shim_set_estimate(float x, float y, float z, float vx, float vy, float vz);
+void shim_set_position_variance(float var_x, float var_y, float var_z);
+void shim_set_kalman_present(int present);
+void shim_set_estimate_present(int present);
+
+/* Commander record. */
+typedef struct shim_commander_record {
+    uint32_t count;          /* setpoints accepted since reset */
+    uint32_t rejected;       /* setpoints below the active priority */
+    uint32_t relax_count;    /* commanderRelaxPriority() calls */
+    uint32_t tick;           /* shim tick of the last accepted setpoint */
+    int priority;            /* priority of the last accepted setpoint */
+    int active_priority;     /* current priority (COMMANDER_PRIORITY_LOWEST after a relax) */
+    int mode_x, mode_y, mode_z, mode_roll, mode_pitch, mode_yaw; /* stab_mode_t values */
+    int velocity_body;       /* 1 body frame, 0 world frame */
+    float vx, vy, vz;        /* m/s */
+    float yaw_rate;          /* deg/s */
+} shim_commander_record_t;
+void shim_commander_get(shim_commander_record_t *out);
+
+/* DEBUG_PRINT output since the last read (NUL-terminated, truncated to n-1 bytes). */
+size_t shim_debug_read(char *buf, size_t n);
+
+#endif /* POLYCC_SHIM_H */

@@ -1,0 +1,10 @@
+/* Shim of the FreeRTOS task API used by apps. */
+#pragma once
+
+#ifndef INC_FREERTOS_H
+#include "FreeRTOS.h"
+#endif
+
+TickType_t xTaskGetTickCount(void);
+void vTaskDelay(const TickType_t xTicksToDelay);
+void vTaskDelayUntil(TickType_t *const pxPreviousWakeTime, const TickType_t xTimeIncrement);
