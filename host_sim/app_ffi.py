@@ -102,19 +102,21 @@ GLUE = """
 #include "polytopes.h"
 float polycc_host_scene_kappa(void) { return POLYCC_SCENE_KAPPA; }
 float polycc_host_brake_acc(void) { return POLYCC_APP_BRAKE_ACC; }
-/* The header's arrays as the app reads them: 0 planes, 1 polys, 2 clusters (NULL if the layout has none). */
+/* The header's arrays as the app reads them: 0 planes, 1 polys, 2 clusters, 3 normals. */
 const void *polycc_host_scene_array(int which, uint32_t *count)
 {
     switch (which) {
     case 0: *count = polycc_scene.n_planes; return polycc_scene.planes;
     case 1: *count = polycc_scene.n_polys; return polycc_scene.polys;
-#ifdef POLYCC_SCENE_N_CLUSTERS
     case 2: *count = polycc_scene.n_clusters; return polycc_scene.clusters;
-#endif
+    case 3: *count = polycc_scene.n_normals; return polycc_scene.normals;
     default: *count = 0; return 0;
     }
 }
-float polycc_host_scene_const(int which) { return which == 0 ? polycc_scene.coord_bound : polycc_scene.log_lmax; }
+float polycc_host_scene_const(int which)
+{
+    return which == 0 ? polycc_scene.coord_bound : which == 1 ? polycc_scene.log_lmax : polycc_scene.quantum;
+}
 """
 
 
@@ -249,30 +251,23 @@ class AppSim:
     def packed_scene(self):
         """The scene exactly as the app reads it (copies of the header's arrays), as a PackedScene
         for the Python reference."""
-        import dataclasses
-
         import numpy as np
 
-        from polycc.scene_layout import PLANE_DTYPE, POLY_DTYPE, PackedScene
+        from polycc.scene_layout import CLUSTER_DTYPE, NORMAL_DTYPE, PLANE_DTYPE, POLY_DTYPE, PackedScene
 
         cnt = self.ffi.new("uint32_t *")
 
         def array(which, dtype):
             ptr = self.lib.polycc_host_scene_array(which, cnt)
-            if ptr == self.ffi.NULL:
-                return None
+            if ptr == self.ffi.NULL or cnt[0] == 0:
+                return np.zeros(0, dtype)
             return np.frombuffer(self.ffi.buffer(ptr, cnt[0] * dtype.itemsize), dtype).copy()
 
-        kw = {"planes": array(0, PLANE_DTYPE), "polys": array(1, POLY_DTYPE),
-              "coord_bound": np.float32(self.lib.polycc_host_scene_const(0)),
-              "log_lmax": np.float32(self.lib.polycc_host_scene_const(1))}
-        names = {f.name for f in dataclasses.fields(PackedScene)}
-        if "clusters" in names:
-            kw["clusters"] = array(2, POLY_DTYPE)
-            if kw["clusters"] is None:
-                raise PolyccError(f"{self.header_path}: the header has no clusters but this polycc's layout needs "
-                                  "them; regenerate it with `polycc build`")
-        return PackedScene(**{k: v for k, v in kw.items() if k in names})
+        const = self.lib.polycc_host_scene_const
+        return PackedScene(normals=array(3, NORMAL_DTYPE), planes=array(0, PLANE_DTYPE),
+                           polys_raw=array(1, POLY_DTYPE), clusters=array(2, CLUSTER_DTYPE),
+                           quantum=np.float32(const(2)), coord_bound=np.float32(const(0)),
+                           log_lmax=np.float32(const(1)))
 
     # ---------------------------------------------------------------- TOCs
     def _toc(self, count, getter, size_fn) -> list[TocEntry]:
