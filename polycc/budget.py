@@ -19,7 +19,9 @@ table is never larger).  A small T buys half-planes at 12 B per dropped normal b
 every plane to a coarser direction set: which one wins is measured, candidate by candidate.
 
 Selection: the least conservative candidate among, for each T, the largest n that fits
-without reduction, a few larger n that fit only after reduction and a few smaller n.
+without reduction, a few larger n that fit only after reduction and a few smaller n; among
+candidates within the Monte Carlo 95 % half-width of the least conservative one, the fewest
+polytopes (fastest on board).
 """
 
 from __future__ import annotations
@@ -150,8 +152,10 @@ class _Normals:
 
 
 def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget, normals_before: int,
-            occupied_volume: float, mc_samples: int, seed: int = 0) -> Candidate | None:
-    """Reduce, pack (format 3) and measure H^n with table cap T; None if it cannot fit."""
+            occupied_volume: float, mc_samples: int, seed: int = 0, caches: dict | None = None) -> Candidate | None:
+    """Reduce, pack (format 3) and measure H^n with table cap T; None if it cannot fit.
+    ``caches`` (one dict per selection) memoises drop costs and polytope records across candidates."""
+    caches = {} if caches is None else caches
     polys = family.materialise(n)
     before = sum(len(p.halfplanes) for p in polys)
     t_eff = normals_before if max_normals is None else min(max_normals, normals_before)
@@ -167,10 +171,11 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
         if cap < MIN_PLANES * n:
             return None
-        red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES)
+        red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES,
+                            cost_cache=caches.setdefault("drop_costs", {}))
         if red is None:
             return None
-        packed = pack_scene(red[0], verts, max_normals=max_normals)
+        packed = pack_scene(red[0], verts, max_normals=max_normals, record_cache=caches.setdefault("records", {}))
         over_planes = packed.n_planes - min(caps.values())
         over_bytes = packed.flash_bytes() - budget.flash_bytes
         dropped = sum(len(h) for h in rows) - sum(len(h) for h in red[0])
@@ -213,19 +218,20 @@ def _largest(lo: int, hi: int, ok: Callable[[int], bool]) -> int:
 
 
 def candidate_ns(family: CoverFamily, budget: Budget, table: Callable[[int], int],
-                 counts: np.ndarray | None = None) -> tuple[list[int], int]:
+                 counts: np.ndarray | None = None, curve: bool = True) -> tuple[list[int], int]:
     """(n values worth evaluating, n0 = largest n that fits with no reduction, or 0), for a
     normal table of table(n) entries.  Plane counts and capacities are nearly monotone in n, so
-    n0 and the largest n that can fit after reduction are found by binary search."""
+    n0 and the largest n that can fit after reduction are found by binary search.  ``curve``
+    adds the smaller n of CURVE_FACTORS (for the trade-off curve)."""
     N = family.n_max
     counts = plane_counts(family) if counts is None else counts
     cap = lambda n: budget.capacity(n, table(n))  # noqa: E731
     n0 = max(0, _largest(1, N, lambda n: int(counts[n]) <= cap(n)))
     if n0 == N:
-        return sorted({N} | {max(1, int(N * f)) for f in CURVE_FACTORS}), n0
+        return sorted({N} | ({max(1, int(N * f)) for f in CURVE_FACTORS} if curve else set())), n0
     n_hi = max(0, _largest(1, N, lambda n: cap(n) >= MIN_PLANES * n))
     cands = {n0} if n0 else set()
-    cands |= {max(1, int(n0 * f)) for f in CURVE_FACTORS if n0}
+    cands |= {max(1, int(n0 * f)) for f in CURVE_FACTORS if n0 and curve}
     base = max(n0, 1)
     for f in REDUCTION_FACTORS:
         n = min(N, n_hi, int(math.ceil(base * f)))
@@ -253,29 +259,62 @@ def select(
     pairs: list[tuple[int, int | None]] = []
     for T in normal_caps:
         table = normals.count if T is None else (lambda n, T=T: min(T, normals.count(n)))
-        ns, _ = candidate_ns(family, budget, table, counts)
+        ns, _ = candidate_ns(family, budget, table, counts, curve=T is None)  # one curve, uncapped
         for n in ns:
             if T is not None and normals.count(n) <= T:
                 continue  # the table is not capped at this n: same as uncapped
             pairs.append((n, T))
     pairs = sorted(set(pairs), key=lambda p: (p[0], -1 if p[1] is None else -p[1]))
-    done: list[Candidate] = []
-    for i, (n, T) in enumerate(pairs):
-        c = realise(family, n, T, budget, normals.count(n), occ_vol, mc_samples)
-        if c is not None:
-            done.append(c)
-        if progress:
-            progress(i + 1, len(pairs))
+    done = _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress)
     if not done:
         raise PolyccError(impossible_budget_message(family, budget))
-    best = min(done, key=lambda c: (c.conservativeness, -c.n))
+    # least conservative; among candidates within the Monte Carlo 95 % half-width of it
+    # (statistically tied) the fewest polytopes, which is the fastest on board
+    low = min(done, key=lambda c: (c.conservativeness, -c.n))
+    best = min((c for c in done if c.conservativeness <= low.conservativeness + low.conservativeness_ci),
+               key=lambda c: (c.n, c.conservativeness))
     if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
         binding = "none (the whole sub-cover fits)"
     elif any(c.n > best.n and c.dropped == 0 for c in done):
-        binding = "none (larger n fit, but were not less conservative)"
+        binding = "none (larger n fit, but were not measurably less conservative)"
     else:
         binding = min(best.caps, key=best.caps.get)
     return best, done, binding
+
+
+def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, progress=None) -> list[Candidate]:
+    caches: dict = {}  # shared by these candidates: drop costs and records of common polytopes
+    out = []
+    for i, (n, T) in enumerate(pairs):
+        c = realise(family, n, T, budget, normals_before[n], occ_vol, mc_samples, caches=caches)
+        if c is not None:
+            out.append(c)
+        if progress:
+            progress(i + 1)
+    return out
+
+
+def _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress) -> list[Candidate]:
+    """Realise every (n, T) pair.  The uncapped-table candidates run here, in order of n (they
+    share most polytopes, so the caches pay); the capped ones run in a forked worker on the
+    second core when the family is big enough for that to pay."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    counts = {n: normals.count(n) for n, _ in pairs}
+    here = [p for p in pairs if p[1] is None]
+    there = [p for p in pairs if p[1] is not None]
+    report = (lambda i: progress(i, len(pairs))) if progress else None
+    if there and here and "fork" in mp.get_all_start_methods() and family.n_max > 500:
+        with ProcessPoolExecutor(1, mp_context=mp.get_context("fork")) as ex:
+            fut = ex.submit(_realise_many, family, budget, there, counts, occ_vol, mc_samples)
+            done = _realise_many(family, budget, here, counts, occ_vol, mc_samples, report)
+            done += fut.result()
+    else:
+        done = _realise_many(family, budget, here + there, counts, occ_vol, mc_samples, report)
+    if progress and pairs:
+        progress(len(pairs), len(pairs))
+    return sorted(done, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
 
 
 def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:

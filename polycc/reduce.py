@@ -67,7 +67,8 @@ def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -
 
 
 def reduce_planes(
-    polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int, per_polytope: int | None = None
+    polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int, per_polytope: int | None = None,
+    cost_cache: dict | None = None,
 ) -> tuple[list[np.ndarray], float] | None:
     """Drop planes, cheapest added volume first, until the total is <= ``max_planes`` and no
     polytope has more than ``per_polytope`` planes (the layout's per-polytope limit).
@@ -81,6 +82,12 @@ def reduce_planes(
     drop (removing planes makes the others' caps grow, so stale costs are mostly lower
     bounds). Safety does not depend on the costs: every drop is outward and is only
     committed after an exact boundedness check.
+
+    A plane whose removal alone leaves its polytope unbounded stays in every bounded reduction
+    (fewer normals cannot span more), so if these essential planes alone exceed ``max_planes``
+    the call fails before dropping anything. ``cost_cache`` (a dict the caller keeps across
+    calls, e.g. over the candidates of one selection) memoises the drop costs of a polytope's
+    original planes, keyed by their bytes.
     """
     cap = per_polytope if per_polytope is not None else 1 << 30
     total = sum(len(h) for h, _ in polytopes)
@@ -95,17 +102,35 @@ def reduce_planes(
     version = [0] * len(planes)
     added = 0.0
 
+    def costs(k) -> list[float]:
+        if cost_cache is None or version[k]:
+            return [drop_cost(planes[k], j, interior[k], volume[k]) for j in range(len(planes[k]))]
+        key = planes[k].tobytes()
+        if key not in cost_cache:
+            cost_cache[key] = [drop_cost(planes[k], j, interior[k], volume[k]) for j in range(len(planes[k]))]
+        return cost_cache[key]
+
     def entries(ks):
         heap = []
         for k in ks:
             if len(planes[k]) <= MIN_PLANES:
                 continue
-            for j in range(len(planes[k])):
-                c = drop_cost(planes[k], j, interior[k], volume[k])
+            for j, c in enumerate(costs(k)):
                 if np.isfinite(c):
                     heap.append((c, k, int(ids[k][j]), version[k]))
         heapq.heapify(heap)
         return heap
+
+    # lower bound: essential planes (infinite drop cost) are never dropped
+    need = 0
+    for k in range(len(planes)):
+        if len(planes[k]) <= MIN_PLANES:
+            need += len(planes[k])
+        else:
+            need += max(MIN_PLANES, sum(1 for c in costs(k) if not np.isfinite(c)))
+    if need > max_planes:
+        return None
+    n_total = [sum(len(h) for h in planes)]
 
     def drop_until(heap, done) -> bool:
         nonlocal added
@@ -124,6 +149,7 @@ def reduce_planes(
                 continue
             planes[k] = np.delete(planes[k], j, axis=0)
             ids[k] = np.delete(ids[k], j)
+            n_total[0] -= 1
             volume[k] += c
             version[k] += 1
             added += c
@@ -132,6 +158,6 @@ def reduce_planes(
     for k in [k for k in range(len(planes)) if len(planes[k]) > cap]:
         if not drop_until(entries([k]), lambda k=k: len(planes[k]) <= cap):
             return None
-    if not drop_until(entries(range(len(planes))), lambda: sum(len(h) for h in planes) <= max_planes):
+    if not drop_until(entries(range(len(planes))), lambda: n_total[0] <= max_planes):
         return None
     return planes, added

@@ -337,7 +337,7 @@ def choose_quantum(vertices: list[np.ndarray]) -> float:
 def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = None, *, leaf: int | None = None,
                rel_safety: float = 1e-6, normal_grid: int | None = DEFAULT_NORMAL_GRID,
                quantum: float | None = None, merge_duplicates: bool = True,
-               max_normals: int | None = None) -> PackedScene:
+               max_normals: int | None = None, record_cache: dict | None = None) -> PackedScene:
     """Pack polytopes ((H_k, 4) arrays [nx, ny, nz, d], unit outward normals) into format 3.
 
     ``vertices[k]`` ((V, 3) float64) are the vertices of the exact polytope k (every point to be
@@ -356,6 +356,7 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
     most ``leaf`` (default max(4, ceil(sqrt(n)))) and stored cluster by cluster
     (``PackedScene.order``).  Culling bounds are computed in float64 from the decoded values and
     rounded outward (``rel_safety`` is a relative cushion for the float64 geometry).
+    ``record_cache`` (a dict kept by the caller) memoises polytope records across packings.
     """
     if len(polytopes) == 0:
         raise PolyccError("no polytopes to pack; the scene needs at least one")
@@ -408,7 +409,7 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
     normals = np.zeros(len(tvals), NORMAL_DTYPE)
     normals.view("<f4").reshape(-1, 3)[:] = np.array(tvals, np.float32).reshape(-1, 3)
 
-    recs = [_poly_record(k, *t, q, rel_safety) for k, t in enumerate(quant)]
+    recs = [_poly_record(k, *t, q, rel_safety, record_cache) for k, t in enumerate(quant)]
     centres = np.array([r["c64"] for r in recs])
     leaf = leaf or max(4, math.ceil(math.sqrt(len(rows))))
     groups = _cluster_order(centres, leaf)
@@ -511,8 +512,23 @@ def _check_rows(k: int, h: np.ndarray) -> None:
         raise PolyccError(f"polytope {k} has normals that are not unit length; normalise [nx, ny, nz, d] rows")
 
 
-def _poly_record(k: int, idx: np.ndarray, dq: np.ndarray, nq: np.ndarray, q: float, rel_safety: float) -> dict:
-    """Quantized record of one polytope: lead planes first, centre on the grid, bounds outward."""
+def _poly_record(k: int, idx: np.ndarray, dq: np.ndarray, nq: np.ndarray, q: float, rel_safety: float,
+                 cache: dict | None = None) -> dict:
+    """Quantized record of one polytope: lead planes first, centre on the grid, bounds outward.
+    The record depends only on the decoded planes (nq, dq), q and rel_safety, so ``cache`` may
+    memoise it across packings that share polytopes (candidates of one build)."""
+    if cache is None:
+        return _poly_record_geometry(k, idx, dq, nq, q, rel_safety)
+    key = (nq.tobytes(), np.asarray(dq, np.int64).tobytes(), q, rel_safety)
+    if key not in cache:
+        rec = _poly_record_geometry(k, np.arange(len(idx)), dq, nq, q, rel_safety)
+        cache[key] = rec
+    rec = dict(cache[key])
+    rec["idx"] = np.asarray(idx)[rec["idx"]]  # the cached idx is the lead-first permutation
+    return rec
+
+
+def _poly_record_geometry(k: int, idx: np.ndarray, dq: np.ndarray, nq: np.ndarray, q: float, rel_safety: float) -> dict:
     n = nq.astype(np.float64)
     d = dq.astype(np.float64) * q  # exact decoded offsets
     _check_bounded(n, k)
