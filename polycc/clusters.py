@@ -46,12 +46,17 @@ def neighbour_offsets(b: int) -> np.ndarray:
 class Clusters:
     """All clusters of one grid.
 
-    neighbours: (V, K) int32; row v lists C_v as voxel ids (-1 = cell not occupied).
-    pattern:    (V,) int32 index into ``weights`` / ``volumes``.
+    Rows 0..V-1 are the clusters C_v; rows V.. (if ``boxes``) are exact boxes: for a voxel
+    whose C_v wastes volume, the largest all-occupied axis-aligned box of its window that holds
+    it (W = 0; at worst the voxel itself).
+
+    neighbours: (R, K) int32; row r lists its voxel ids (-1 = cell not in the set).
+    centre:     (R,) int64 voxel id at the centre of the row's window (r for r < V).
+    pattern:    (R,) int32 index into ``weights`` / ``volumes``.
     weights:    (P,) float64 W per distinct pattern, in cells (multiply by g^3).
     volumes:    (P,) float64 hull volume per pattern, cells.
-    sizes:      (V,) int32 |C_v|.
-    hull_vertices: per pattern, (H, 3) int64 hull vertices relative to voxel v's lower corner.
+    sizes:      (R,) int32 set sizes.
+    hull_vertices: per pattern, (H, 3) int64 hull vertices relative to the centre's lower corner.
     """
 
     b: int
@@ -61,9 +66,11 @@ class Clusters:
     volumes: np.ndarray
     sizes: np.ndarray
     hull_vertices: list
+    centre: np.ndarray
+    n_voxels: int
 
     def weight(self) -> np.ndarray:
-        """(V,) W(C_v) in cells."""
+        """(R,) W of every set, in cells."""
         return self.weights[self.pattern]
 
     def members(self, v: int) -> np.ndarray:
@@ -71,8 +78,25 @@ class Clusters:
         return row[row >= 0]
 
 
-def build_clusters(indices: np.ndarray, b: int = 1) -> Clusters:
-    """Clusters C_v for every voxel of ``indices`` ((V, 3) int64, sorted unique)."""
+def _window_boxes(b: int) -> np.ndarray:
+    """(B, K) bool masks of the axis-aligned boxes of the (2b+1)^3 window that hold its centre,
+    largest first."""
+    offs = neighbour_offsets(b)
+    iv = [(lo, hi) for lo in range(-b, 1) for hi in range(0, b + 1)]
+    masks = []
+    for ax in iv:
+        for ay in iv:
+            for az in iv:
+                lo, hi = np.array([ax[0], ay[0], az[0]]), np.array([ax[1], ay[1], az[1]])
+                masks.append(np.all((offs >= lo) & (offs <= hi), axis=1))
+    masks = np.array(masks)
+    return masks[np.argsort(-masks.sum(axis=1), kind="stable")]
+
+
+def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True) -> Clusters:
+    """Clusters C_v for every voxel of ``indices`` ((V, 3) int64, sorted unique), plus (if
+    ``boxes``) one exact box per voxel whose C_v has W > 0, so that the set cover can always
+    cover a voxel without waste (the paper's sets are the C_v only)."""
     if b < 0:
         raise ValueError("neighbourhood b must be >= 0")
     idx = np.asarray(indices, np.int64)
@@ -84,6 +108,27 @@ def build_clusters(indices: np.ndarray, b: int = 1) -> Clusters:
     for k, o in enumerate(offs):  # K vectorised lookups, K = (2b+1)^3
         pos = lookup(skeys, pack(idx + o))
         nb[:, k] = np.where(pos >= 0, order[pos], -1)
+    V = len(idx)
+    centre = np.arange(V, dtype=np.int64)
+    if boxes:
+        present = nb >= 0
+        masks = _window_boxes(b)
+        # weight of C_v is 0 exactly when its pattern equals the hull; find the others first
+        packed0 = np.packbits(present, axis=1)
+        uniq0, pat0 = np.unique(packed0, axis=0, return_inverse=True)
+        w0 = np.empty(len(uniq0))
+        for p, bits in enumerate(uniq0):
+            m = np.unpackbits(bits)[: len(offs)].astype(bool)
+            w0[p] = lattice_hull(voxel_corner_points(offs[m])).volume - m.sum()
+        lossy = np.flatnonzero(w0[pat0.reshape(-1)] > 1e-9)
+        if len(lossy):
+            best = np.full(len(lossy), -1, np.int64)
+            for j, m in enumerate(masks):  # largest first: keep the first full box
+                full = present[np.ix_(lossy, m)].all(axis=1) & (best < 0)
+                best[full] = j
+            rows = np.where(masks[best], nb[lossy], -1).astype(np.int32)
+            nb = np.vstack([nb, rows])
+            centre = np.concatenate([centre, lossy])
     present = nb >= 0
     packed = np.packbits(present, axis=1)
     uniq, pattern = np.unique(packed, axis=0, return_inverse=True)
@@ -97,4 +142,4 @@ def build_clusters(indices: np.ndarray, b: int = 1) -> Clusters:
         volumes[p] = h.volume
         weights[p] = max(h.volume - mask.sum(), 0.0)
         verts.append(h.vertices)
-    return Clusters(b, nb, pattern, weights, volumes, present.sum(axis=1).astype(np.int32), verts)
+    return Clusters(b, nb, pattern, weights, volumes, present.sum(axis=1).astype(np.int32), verts, centre, V)

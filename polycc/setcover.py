@@ -17,15 +17,16 @@ from polycc.clusters import Clusters
 
 
 def greedy_set_cover(cl: Clusters) -> np.ndarray:
-    """Voxel ids v whose clusters C_v form the sub-cover C-bar (in pick order)."""
+    """Rows of ``cl`` (cluster C_v for row v < V, else an exact box) forming the sub-cover
+    C-bar, in pick order."""
     nb = cl.neighbours
-    V = nb.shape[0]
+    V = cl.n_voxels
     w = cl.weight()
     covered = np.zeros(V + 1, dtype=bool)  # index -1 -> the sentinel slot V (always False)
     covered[V] = True  # -1 entries count as already covered
     nbi = np.where(nb >= 0, nb, V)
     new = cl.sizes.astype(np.int64)
-    heap = [(w[v] / new[v], -int(new[v]), v) for v in range(V)]
+    heap = [(w[v] / new[v], -int(new[v]), v) for v in range(nb.shape[0])]
     heapq.heapify(heap)
     chosen: list[int] = []
     left = V

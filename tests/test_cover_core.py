@@ -103,15 +103,39 @@ def test_cluster_weight_is_translation_invariant_pattern():
 
 @settings(max_examples=25)
 @given(st.lists(st.tuples(*[st.integers(0, 7)] * 3), min_size=1, max_size=60, unique=True), st.integers(0, 2))
-def test_set_cover_covers_everything(vox, b):
+def test_box_rows_are_exact_occupied_boxes(vox, b):
+    """Extra rows: one per voxel whose C_v wastes volume, an all-occupied box around it, W = 0."""
     idx = np.unique(np.array(vox), axis=0)
     cl = build_clusters(idx, b)
+    V = cl.n_voxels
+    assert V == len(idx) and np.array_equal(cl.centre[:V], np.arange(V))
+    lossy = set(np.flatnonzero(cl.weight()[:V] > 1e-9).tolist())
+    assert set(cl.centre[V:].tolist()) == lossy
+    for r in range(V, len(cl.centre)):
+        m = cl.members(r)
+        v = int(cl.centre[r])
+        assert v in m.tolist() and cl.weight()[r] == 0.0
+        lo, hi = idx[m].min(0), idx[m].max(0)
+        assert len(m) == np.prod(hi - lo + 1)  # every cell of the box is occupied and a member
+        assert np.abs(idx[m] - idx[v]).max() <= b
+    plain = build_clusters(idx, b, boxes=False)
+    assert len(plain.centre) == V and np.array_equal(plain.neighbours, cl.neighbours[:V])
+
+
+@settings(max_examples=25)
+@given(st.lists(st.tuples(*[st.integers(0, 7)] * 3), min_size=1, max_size=60, unique=True), st.integers(0, 2),
+       st.booleans())
+def test_set_cover_covers_everything(vox, b, boxes):
+    idx = np.unique(np.array(vox), axis=0)
+    cl = build_clusters(idx, b, boxes)
     chosen = greedy_set_cover(cl)
     covered = np.zeros(len(idx), bool)
     for v in chosen:
         covered[cl.members(v)] = True
     assert covered.all()
     assert len(set(chosen.tolist())) == len(chosen)
+    if boxes:  # every voxel has a zero-waste set, so the sub-cover wastes nothing
+        assert np.all(cl.weight()[chosen] == 0.0)
 
 
 # ---------------------------------------------------------------- merging and the family

@@ -13,9 +13,8 @@ from polycc.budget import Budget, select
 from polycc.codegen import write_outputs
 from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy, print_summary
 from polycc.console import console, progress_bar
-from polycc.cover import DEFAULT_MERGE_COST, build_cover
+from polycc.cover import COVER_COSTS, DEFAULT_MERGE_COST, build_cover
 from polycc.errors import PolyccError
-from polycc.merge import MERGE_COSTS
 from polycc.reduce import polytope_vertices
 from polycc.report_plot import write_report
 
@@ -43,8 +42,12 @@ def register(sub) -> None:
                    help="soft-min/soft-max sharpness recorded in the header, 1/m (default: %(default)s, as in the paper)")
     p.add_argument("--neighborhood", type=int, default=1, metavar="B",
                    help="cluster radius b in voxels (L-infinity), Eq. 10 (default: %(default)s)")
-    p.add_argument("--merge-cost", choices=sorted(MERGE_COSTS), default=DEFAULT_MERGE_COST,
-                   help="merge cost: 'paper' = W of the union (Eq. 13); see `polycc cover --help` (default: %(default)s)")
+    p.add_argument("--boxes", action=argparse.BooleanOptionalAction, default=True,
+                   help="add one exact all-occupied box per voxel whose cluster wastes volume to the set-cover "
+                        "candidates, so the sub-cover wastes nothing (--no-boxes: the paper's clusters only) "
+                        "(default: on)")
+    p.add_argument("--merge-cost", choices=COVER_COSTS, default=DEFAULT_MERGE_COST,
+                   help="merge cost: 'paper' = W of the union (Eq. 13), 'delta' = the free volume a merge adds, 'best' = both, keep the better; see `polycc cover --help` (default: %(default)s)")
     p.add_argument("--mc-samples", type=int, default=100_000, metavar="S",
                    help="Monte Carlo samples per candidate for conservativeness (default: %(default)s)")
     add_scene_options(p)
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     scene, occ = load_scene_and_occupancy(args.scene, args)
     t = time.perf_counter()
     with console.status("cover: clusters, set cover, merging"):
-        family = build_cover(occ, b=args.neighborhood, cost=args.merge_cost)
+        family = build_cover(occ, b=args.neighborhood, cost=args.merge_cost, boxes=args.boxes)
     t_cover = time.perf_counter() - t
     out.mkdir(parents=True, exist_ok=True)
     family.meta.update({"scene_sha256": scene.sha256})
@@ -88,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         "crop": list(args.crop) if args.crop else None, "drop_invalid": args.drop_invalid, "voxel": args.voxel,
         "min_splats_per_voxel": args.min_splats_per_voxel, "flash_kb": args.flash_kb,
         "max_halfplanes": args.max_halfplanes, "rate_hz": args.rate_hz, "cpu_share": args.cpu_share,
-        "kappa": args.kappa, "neighborhood": args.neighborhood, "merge_cost": args.merge_cost,
+        "kappa": args.kappa, "neighborhood": args.neighborhood, "boxes": args.boxes, "merge_cost": args.merge_cost,
         "mc_samples": args.mc_samples,
     }
     cons_text = f"{best.conservativeness:.3f} +- {best.conservativeness_ci:.3f} (95% CI)"

@@ -39,6 +39,10 @@ def register(sub) -> None:
                    help="pair cost for merging: 'paper' = W(A u B) (Eq. 13); 'delta' = W(A u B) - W(A) - W(B), "
                         "the free volume a merge adds; 'best' = run both (in parallel) and keep the family with the "
                         "lower measured conservativeness at n = 10..150 (default: %(default)s; see bench/bench_cover.py)")
+    c.add_argument("--boxes", action=argparse.BooleanOptionalAction, default=True,
+                   help="add one exact all-occupied box per voxel whose cluster wastes volume to the set-cover "
+                        "candidates, so the sub-cover wastes nothing (--no-boxes: the paper's clusters only) "
+                        "(default: on)")
     c.add_argument("--refresh", choices=("lazy", "eager"), default="lazy",
                    help="after a merge, re-evaluate the new node's old neighbour pairs when they reach the top of "
                         "the heap (lazy) or at once (eager, exact greedy; slower) (default: %(default)s)")
@@ -123,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         bar = _StageBar(f"cover ({cost} cost)")
         try:
-            fam = build_cover(grid, args.neighborhood, cost, stages=stages, refresh=args.refresh, progress=bar)
+            fam = build_cover(grid, args.neighborhood, cost, stages=stages, refresh=args.refresh, progress=bar,
+                              boxes=args.boxes)
         finally:
             bar.close()
         fam.meta["time_s"] = time.perf_counter() - t0
@@ -166,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
     t = fam.meta["timings_s"]
     rows = [
         ("occupied voxels |V+|", f"{len(grid):,}"),
-        ("neighbourhood b", str(args.neighborhood)),
+        ("neighbourhood b", str(args.neighborhood) + (" (+ exact boxes)" if args.boxes else " (clusters only)")),
         ("distinct cluster patterns", f"{fam.meta['clusters_distinct_patterns']:,}"),
         ("sub-cover size N", f"{fam.n_max:,}"),
         ("merge cost", fam.meta["merge_cost"] + (" (chosen by 'best': mean conservativeness n=10..150 "
