@@ -3,8 +3,10 @@
 For the arena of real captures and the demo arena, at 8, 16, 32 and 64 KiB: n, half-planes,
 bytes per half-plane, conservativeness and modelled on-board microseconds, next to a
 "paper-faithful" storage at the same budget (qhull's triangle facets unmerged, float32
-n and d per plane, no reduction: the largest n whose planes fit). Wasted volume is
-Vol(union H) - Vol(V+). Also times `polycc build` end to end on the 1.5M-splat room.
+n and d per plane, no reduction: the largest n whose planes fit), first on our merge family,
+then on the paper's own cover (its clusters only, its merge cost): "paper pipeline". Wasted
+volume is Vol(union H \\ V+), estimated directly (polycc.union_volume.union_waste), with the
+same samples for every column. Also times `polycc build` end to end on the 1.5M-splat room.
 
     python bench/bench_build.py [--quick]
 """
@@ -45,7 +47,7 @@ def arena_ply(name: str) -> Path:
 
 def paper_faithful(family, budget_bytes: int, occ_vol: float, samples: int):
     """Largest n whose unmerged triangle facets (float32 n, d) fit; its wasted volume."""
-    from polycc.union_volume import union_volume
+    from polycc.union_volume import in_voxels, union_waste
 
     tri = np.array([len(ConvexHull(family.vertices[family.vertex_ptr[k]:family.vertex_ptr[k + 1]]).simplices)
                     for k in range(len(family.plane_ptr) - 1)])
@@ -66,9 +68,11 @@ def paper_faithful(family, budget_bytes: int, occ_vol: float, samples: int):
     n = lo
     polys = family.materialise(n)
     boxes = [(p.vertices.min(0), p.vertices.max(0)) for p in polys]
-    vol, ci = union_volume([p.halfplanes for p in polys], boxes, samples=samples)
+    occupied = in_voxels(family.grid_indices, family.origin, family.voxel_size)
+    _, _, waste, wci = union_waste([p.halfplanes for p in polys], boxes, occupied, samples=samples)
     nodes = family.active_nodes(n)
-    best = {"n": n, "halfplanes": int(tri[nodes].sum()), "conservativeness": vol / occ_vol, "wasted_m3": vol - occ_vol,
+    best = {"n": n, "halfplanes": int(tri[nodes].sum()), "conservativeness": 1 + waste / occ_vol, "wasted_m3": waste,
+            "wasted_ci_m3": wci,
             "bytes_at": lambda m: 28 + m * 28 + int(tri[family.active_nodes(m)].sum()) * PLANE_BYTES_PAPER}
     return best
 
@@ -85,6 +89,7 @@ def table_for(name: str, samples: int) -> list[dict]:
     t = time.perf_counter()
     family = build_cover(occ)
     t_cover = time.perf_counter() - t
+    paper_family = build_cover(occ, cost="paper", boxes=False)  # the paper's own cover, for the pipeline baseline
     occ_vol = occ.volume()
     rows = []
     for kb in BUDGETS_KB:
@@ -92,16 +97,21 @@ def table_for(name: str, samples: int) -> list[dict]:
         best, _, binding = select(family, Budget(kb * 1024), mc_samples=samples)
         us = cycle_model.estimate_us(best.packed)
         pf = paper_faithful(family, kb * 1024, occ_vol, samples)
+        pp = paper_faithful(paper_family, kb * 1024, occ_vol, samples)
         rows.append({
             "scene": name, "budget_kb": kb, "n": best.n, "halfplanes": best.n_planes,
             "bytes_per_halfplane": best.bytes / best.n_planes, "conservativeness": best.conservativeness,
             "ci95": best.conservativeness_ci, "wasted_m3": best.union_volume - occ_vol,
+            "wasted_ci_m3": best.union_ci, "binding_short": binding.split(" ")[0],
             "typical_us": us["typical_us"], "worst_us": us["worst_us"], "binding": binding,
             "select_s": time.perf_counter() - t, "cover_s": t_cover,
             "paper_n": pf["n"] if pf else None, "paper_halfplanes": pf["halfplanes"] if pf else None,
             "paper_conservativeness": pf["conservativeness"] if pf else None,
             "paper_wasted_m3": pf["wasted_m3"] if pf else None,
             "paper_bytes_same_n": pf["bytes_at"](best.n) if pf else None,
+            "pipeline_n": pp["n"] if pp else None,
+            "pipeline_conservativeness": pp["conservativeness"] if pp else None,
+            "pipeline_wasted_m3": pp["wasted_m3"] if pp else None,
         })
     return rows
 
@@ -123,18 +133,22 @@ def main() -> None:
     rows = []
     for name in ("capture_arena", "demo_arena"):
         rows += table_for(name, samples)
+    def ratio(paper, ours):
+        return f"{paper / max(ours, 1e-12):.1f}x" if paper is not None else "-"
+
     print_table(
-        "polycc build vs paper-faithful storage (float32 n, d per triangle facet, no reduction), g = 5 cm",
-        ["scene", "KiB", "n", "half-planes", "B/half-plane", "conservativeness", "wasted m^3", "typ us", "worst us",
-         "binding", "paper n", "paper planes", "paper cons.", "paper wasted m^3", "wasted ratio",
-         "paper KiB at our n"],
-        [[r["scene"], r["budget_kb"], r["n"], r["halfplanes"], round(r["bytes_per_halfplane"], 2),
-          round(r["conservativeness"], 3), round(r["wasted_m3"], 4), round(r["typical_us"], 1), round(r["worst_us"], 1),
-          r["binding"], r["paper_n"], r["paper_halfplanes"],
-          round(r["paper_conservativeness"], 3) if r["paper_conservativeness"] else "-",
-          round(r["paper_wasted_m3"], 4) if r["paper_wasted_m3"] is not None else "-",
-          f"{r['paper_wasted_m3'] / max(r['wasted_m3'], 1e-12):.2f}x" if r["paper_wasted_m3"] is not None else "-",
-          round(r["paper_bytes_same_n"] / 1024, 1) if r["paper_bytes_same_n"] else "-"]
+        "polycc build vs paper-faithful storage at equal bytes (float32 n, d per qhull triangle facet, no "
+        "reduction, largest n that fits), g = 5 cm; 'paper pipeline' also uses the paper's cover (no boxes, paper cost)",
+        ["scene", "KiB", "n", "planes", "B/plane", "cons. (95%)", "wasted m^3", "typ/worst us", "binding",
+         "paper n", "paper cons.", "wasted ratio", "paper KiB at our n", "pipeline n", "pipeline cons.", "ratio"],
+        [[r["scene"].replace("_arena", ""), r["budget_kb"], r["n"], r["halfplanes"], round(r["bytes_per_halfplane"], 2),
+          f"{r['conservativeness']:.4f} +- {r['ci95']:.4f}", f"{r['wasted_m3']:.5f}",
+          f"{r['typical_us']:.0f} / {r['worst_us']:.0f}", r["binding_short"],
+          r["paper_n"], f"{r['paper_conservativeness']:.4f}" if r["paper_conservativeness"] else "-",
+          ratio(r["paper_wasted_m3"], r["wasted_m3"]),
+          round(r["paper_bytes_same_n"] / 1024, 1) if r["paper_bytes_same_n"] else "-",
+          r["pipeline_n"], f"{r['pipeline_conservativeness']:.4f}" if r["pipeline_conservativeness"] else "-",
+          ratio(r["pipeline_wasted_m3"], r["wasted_m3"])]
          for r in rows],
     )
     e2e = end_to_end(args.quick)

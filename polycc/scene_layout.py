@@ -385,9 +385,11 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
         if merge_duplicates:  # identical normals give identical planes: store one
             idx = list(dict.fromkeys(idx))
         nq = np.array([tvals[i] for i in idx], np.float32).reshape(-1, 3)
-        if max_normals is not None and not _bounded(nq.astype(np.float64)):
-            # snapping to a small table opened it: close it with its axis-aligned box (entries 0..5)
-            idx = list(dict.fromkeys(list(idx) + list(range(6))))
+        if _needs_box(nq, record_cache):
+            # snapping opened it, or its normals leave it too elongated for the record (1/gamma
+            # over the uint16 field): add its axis-aligned bounding box, which contains it, so
+            # the stored polytope still contains the exact one and 1/gamma <= sqrt(3)
+            idx = list(dict.fromkeys(list(idx) + _axis_entries(table, tvals, normal_grid)))
             nq = np.array([tvals[i] for i in idx], np.float32)
         idx = np.array(idx, np.int64)
         dq = _outward_offsets(nq, v, q)
@@ -492,6 +494,42 @@ def _normal_table(rows: list[np.ndarray], grid: int | None, max_normals: int | N
     lab = np.argmax(X @ C.T, axis=1)
     ctab = [snap_normal(c, None)[1] for c in C]
     return None, ctab, [[int(lab[i]) for i in idx] for idx in per_poly]
+
+
+_MAX_INV_GAMMA = 0.5 * 65535 * INV_GAMMA_UNIT  # half the record's range: margin for the safety factors
+
+
+def _needs_box(nq: np.ndarray, cache: dict | None) -> bool:
+    """True if these normals bound no polytope or one too elongated for the record."""
+    key = ("needs_box", nq.tobytes())
+    if cache is not None and key in cache:
+        return cache[key]
+    n = nq.astype(np.float64)
+    if not _bounded(n):
+        out = True
+    else:
+        try:
+            out = _inv_gamma(n) > _MAX_INV_GAMMA
+        except PolyccError:
+            out = True
+    if cache is not None:
+        cache[key] = out
+    return out
+
+
+def _axis_entries(table: dict | None, tvals: list, grid: int | None) -> list[int]:
+    """Table indices of the six axis normals (entries 0..5 of a capped table; added to an
+    uncapped one if missing)."""
+    if table is None:
+        return list(range(6))
+    out = []
+    for a in _AXES:
+        key, f = snap_normal(a, grid)
+        if key not in table:
+            table[key] = len(tvals)
+            tvals.append(f)
+        out.append(table[key])
+    return out
 
 
 def _bounded(n: np.ndarray) -> bool:

@@ -220,4 +220,4 @@ def test_record_cache_packs_identical_bytes():
     ref = pack_scene(polys).to_bytes()
     assert pack_scene(polys, record_cache=cache).to_bytes() == ref
     assert pack_scene(polys[:6] + polys[6:], record_cache=cache).to_bytes() == ref
-    assert len(cache) == 12
+    assert sum(1 for k in cache if k[0] != "needs_box") == 12  # one record per polytope

@@ -200,3 +200,21 @@ def test_bad_quantum_and_vertices_are_refused():
         pack_scene([box], [])
     with pytest.raises(PolyccError, match="int16"):
         pack_scene([axis_box([0, 0, 0], [1000, 1, 1])], quantum=2.0**-10)
+
+
+def test_over_elongated_polytope_is_closed_by_its_box():
+    """Regression (hypothesis, test_kernel_properties): a random sliver hull had 1/gamma ~ 1600,
+    beyond the record's uint16 field, and pack_scene refused the scene. It now adds the
+    polytope's axis-aligned bounding box, which still contains the exact polytope."""
+    from polycc.scene_layout import _MAX_INV_GAMMA, _inv_gamma
+
+    rng = np.random.default_rng(2492)
+    polys = random_hull_polytopes(rng, 6, extent=(4.0, 4.0, 4.0), size=(0.05, 1.0), points=(5, 25))
+    assert _inv_gamma(polys[5][:, :3]) > 2 * _MAX_INV_GAMMA  # the case: beyond 65535 / 256
+    sliver = polys[5]
+    sc = pack_scene([sliver])
+    stored = sc.polytopes()[0].astype(np.float64)
+    assert len(stored) > len(sliver)  # box planes added
+    verts = polytope_vertices(sliver)
+    assert np.all(verts @ stored[:, :3].T <= stored[:, 3] + 1e-12)  # still contains the exact polytope
+    assert sc.polys["inv_gamma"][0] <= 2.0  # sqrt(3) plus the rounding
