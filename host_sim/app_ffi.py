@@ -29,18 +29,13 @@ The same tables are reachable in C through ``host_sim/shims/polycc_shim.h``
 
 from __future__ import annotations
 
-import importlib.machinery
-import importlib.util
 import os
 import shutil
-import sys
-import sysconfig
-import tempfile
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-from host_sim.kernel_ffi import source_hash
+from host_sim.kernel_ffi import build_cffi
 from polycc.errors import PolyccError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -135,43 +130,21 @@ def _first_error(scene_dir: Path, cflags: list[str]) -> str | None:
 
 @lru_cache(maxsize=16)
 def _load(header_text: bytes, header_dir: str, defines: tuple[str, ...] = ()):
-    import cffi
-
     cflags = HOST_CFLAGS + [f"-D{d}" for d in defines]
-    sources = APP_SOURCES + SHIM_SOURCES
-    files = b"".join(p.name.encode() + p.read_bytes() for p in sources + HEADERS)
-    key = source_hash(files, header_text, CDEF.encode(), GLUE.encode(), " ".join(cflags).encode(),
-                      cffi.__version__.encode(), sys.version.encode())
-    name = f"_polycc_app_{key}"
-    out_dir = REPO / "build" / "cffi"
-    suffix = sysconfig.get_config_var("EXT_SUFFIX") or ".so"
-    target = out_dir / f"{name}{suffix}"
-    if not target.exists():
-        out_dir.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f"{name}-", dir=out_dir))
-        try:
-            inc = tmp / "scene"
-            inc.mkdir()
-            (inc / "polytopes.h").write_bytes(header_text)
-            ffi = cffi.FFI()
-            ffi.cdef(CDEF)
-            ffi.set_source(name, GLUE, sources=[str(p) for p in sources],
-                           include_dirs=[str(SHIMS), str(SRC), str(inc)], extra_compile_args=cflags)
-            try:
-                built = Path(ffi.compile(tmpdir=str(tmp), verbose=False))
-            except Exception as exc:  # compiler missing, or a warning under -Werror
-                why = _first_error(inc, cflags) or str(exc)
-                raise PolyccError(f"building the host app with {header_dir}/polytopes.h failed: {why}; check the "
-                                  "header was written by this polycc's `polycc build` and that gcc and python3-dev "
-                                  "are installed") from None
-            os.replace(built, target)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-    spec = importlib.util.spec_from_file_location(name, target,
-                                                  loader=importlib.machinery.ExtensionFileLoader(name, str(target)))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+
+    def prepare(tmp: Path) -> list[Path]:
+        inc = tmp / "scene"
+        inc.mkdir()
+        (inc / "polytopes.h").write_bytes(header_text)
+        return [inc]
+
+    def explain(exc: Exception, extra: list[Path]) -> str:
+        why = (_first_error(extra[0], cflags) if extra else None) or str(exc)
+        return (f"building the host app with {header_dir}/polytopes.h failed: {why}; check the header was written "
+                "by this polycc's `polycc build` and that gcc and python3-dev are installed")
+
+    return build_cffi("_polycc_app", CDEF, GLUE, APP_SOURCES + SHIM_SOURCES + HEADERS, [SHIMS, SRC], cflags,
+                      key_parts=[header_text], prepare=prepare, explain=explain)
 
 
 def load(header_path: str | Path, defines: dict[str, str] | None = None):

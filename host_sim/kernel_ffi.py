@@ -104,14 +104,15 @@ def source_hash(*parts: bytes) -> str:
 
 
 def build_cffi(prefix: str, cdef: str, source: str, sources: list[Path], include_dirs: list[Path],
-               cflags: list[str], key_parts: list[bytes] = (), prepare=None):
+               cflags: list[str], key_parts: list[bytes] = (), prepare=None, explain=None):
     """Build (once) and import a cffi API-mode extension; safe under concurrent pytest workers.
 
     The module name is ``<prefix>_<hash>``, the hash covering the sources, ``key_parts``, cdef,
     glue source, flags, cffi and Python versions; it is built in a private temporary directory
     under ``build/cffi/`` and moved into place with ``os.replace``.  ``prepare(tmpdir)`` may
     write extra inputs (for instance a generated header) before compiling and returns extra
-    include directories."""
+    include directories; ``explain(exc, extra_include_dirs)`` may turn a failed compile into
+    the user's error message."""
     import cffi
 
     files = b"".join(p.name.encode() + p.read_bytes() for p in sources)
@@ -133,6 +134,8 @@ def build_cffi(prefix: str, cdef: str, source: str, sources: list[Path], include
             try:
                 built = Path(ffi.compile(tmpdir=str(tmp), verbose=False))
             except Exception as exc:  # compiler missing or a warning under -Werror
+                if explain is not None:
+                    raise PolyccError(explain(exc, extra)) from None
                 raise PolyccError(f"building {prefix} for the host failed ({exc}); install gcc and python3-dev") from None
             os.replace(built, target)
         finally:

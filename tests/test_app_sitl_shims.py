@@ -179,3 +179,14 @@ def test_param_writes_convert_types(fresh):
     assert fresh.get_param("polycc", "vmax") == float(np.float32(0.1))
     with pytest.raises(Exception, match="no parameter"):
         fresh.set_param("polycc", "nope", 1)
+
+
+def test_broken_header_gives_a_one_line_error(tmp_path):
+    """A header that does not compile with the app is reported with the compiler's first error."""
+    from polycc.errors import PolyccError
+
+    write_outputs(tmp_path, [axis_box([0, 0, 0], [1, 1, 1])], {"kappa": 100.0})
+    h = tmp_path / "polytopes.h"
+    h.write_text(h.read_text().replace("#define POLYCC_SCENE_N_POLYS", "#define POLYCC_SCENE_N_POLYS oops +"))
+    with pytest.raises(PolyccError, match=r"building the host app with .*polytopes.h failed: .*error"):
+        AppSim(h)
