@@ -24,8 +24,10 @@ def register(sub) -> None:
         "build",
         help="build the on-board C header (polytopes.h) of a scene under flash/compute budgets",
         description="Read a splat scene, voxelize it exactly, cover it with PolyMerge polytopes, pick the least "
-                    "conservative cover H^n that fits the budgets after outward plane reduction and float32 "
-                    "rounding, and write OUT/polytopes.h, OUT/manifest.json, OUT/cover.npz and OUT/report.png.",
+                    "conservative cover H^n that fits the budgets after outward plane reduction and outward "
+                    "quantization (scene format 3: shared normal table, 4-byte half-planes), and write "
+                    "OUT/polytopes.h, OUT/manifest.json, OUT/scene.bin (the same bytes as the header's arrays), "
+                    "OUT/cover.npz and OUT/report.png. Every stored polytope contains its exact one.",
     )
     p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply or .splat file")
     p.add_argument("-o", "--output", default="out", metavar="OUT", help="output folder (default: %(default)s)")
