@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         "kappa": args.kappa, "neighborhood": args.neighborhood, "boxes": args.boxes, "merge_cost": args.merge_cost,
         "mc_samples": args.mc_samples,
     }
-    cons_text = f"{best.conservativeness:.3f} +- {best.conservativeness_ci:.3f} (95% CI)"
+    cons_text = f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% CI)"
     stats = {
         "splats_read": scene.stats.read, "splats_kept": scene.stats.kept, "scene_stats": scene.stats.as_dict(),
         "voxels": len(occ), "voxel_size_m": occ.voxel_size, "occupied_volume_m3": occ.volume(),
@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     curve = [(c.n, c.conservativeness, c.conservativeness_ci) for _, c in sorted(per_n.items())]
     write_report(out / "report.png", scene.ellipsoids.centers, verts, curve, (best.n, best.conservativeness),
                  f"{Path(args.scene).name}: n = {best.n}, {best.n_planes} half-planes, {best.bytes} B of "
-                 f"{budget.flash_bytes} B, conservativeness {best.conservativeness:.2f}")
+                 f"{budget.flash_bytes} B, conservativeness {best.conservativeness:.4f}")
 
     rows = [
         ("scene", f"{args.scene} (sha256 {scene.sha256[:12]}...)"),
