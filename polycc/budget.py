@@ -278,13 +278,24 @@ def select(
     low = min(done, key=lambda c: (c.conservativeness, -c.n))
     best = min((c for c in done if c.conservativeness <= low.conservativeness + low.conservativeness_ci),
                key=lambda c: (c.n, c.conservativeness))
+    return best, done, binding_text(family, best, done)
+
+
+def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate]) -> str:
+    """Which budget stopped the choice: its name first ('flash', 'halfplanes', 'rate' or 'none'),
+    then why, for the summary."""
     if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
-        binding = "none (the whole sub-cover fits)"
-    elif any(c.n > best.n and c.dropped == 0 for c in done):
-        binding = "none (larger n fit, but were not measurably less conservative)"
-    else:
-        binding = min(best.caps, key=best.caps.get)
-    return best, done, binding
+        return "none (the whole sub-cover fits)"
+    tightest = min(best.caps, key=best.caps.get)
+    slack = best.caps[tightest] - best.n_planes  # half-planes still free under that budget
+    full = slack < max(8, 2 * best.n_planes / best.n)  # not even two more average polytopes fit
+    larger = any(c.n > best.n for c in done)
+    if full and larger:
+        return (f"{tightest} (full; larger n fit only with a coarser normal table or fewer planes, "
+                "and were more conservative)")
+    if full or not larger:
+        return tightest
+    return "none (larger n fit, but were not measurably less conservative)"
 
 
 def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, progress=None) -> list[Candidate]:
