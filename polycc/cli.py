@@ -11,6 +11,7 @@ import importlib
 import sys
 
 from polycc import __version__
+from polycc.commands.argtypes import OneLineParser, main_argv
 from polycc.errors import PolyccError
 
 # Order is the order shown by `polycc --help`.
@@ -28,7 +29,7 @@ COMMAND_MODULES = [
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="polycc",
         description=(
             "Turn a 3D Gaussian Splatting scene into a certified polytope obstacle cover "
@@ -45,7 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(main_argv(argv))
+    except SystemExit as exc:  # --help, --version, or a one-line usage error (OneLineParser)
+        return int(exc.code or 0) if not isinstance(exc.code, str) else 2
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

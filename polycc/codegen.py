@@ -70,6 +70,7 @@ def render_header(packed: PackedScene, meta: dict) -> str:
         scene_sha256=meta.get("scene", {}).get("sha256", "?"),
         options_line=" ".join(f"{k}={v}" for k, v in sorted(opts.items())) or "(defaults)",
         transform_line=json.dumps(meta.get("transform")),
+        floater_line=meta.get("floater_line", "none"),
         kappa=f"{meta['kappa']:g}",
         kappa_literal=c_float(meta["kappa"]),
         n_clusters=packed.n_clusters,
@@ -105,6 +106,7 @@ def manifest(packed: PackedScene, meta: dict) -> dict:
         "kappa": float(meta["kappa"]),
         "scene": meta.get("scene", {}),
         "options": meta.get("options", {}),
+        "scene_settings": meta.get("scene_settings"),
         "polytopes": [{"halfplanes": h.astype(np.float64).tolist()} for h in packed.polytopes()],
         "stats": meta.get("stats", {}),
     }

@@ -207,6 +207,7 @@ def voxelize(
     keys, counts = acc.result()
     n_all = int(keys.size)
     keep = counts >= min_splats_per_voxel
+    removed = unpack_keys(keys[~keep])
     keys, counts = keys[keep], counts[keep]
     stats = {
         "ellipsoids": n,
@@ -223,4 +224,5 @@ def voxelize(
         origin=origin,
         counts=counts.astype(np.int32),
         stats=stats,
+        removed=removed,
     )

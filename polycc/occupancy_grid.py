@@ -25,6 +25,8 @@ class OccupancyGrid:
     origin:     (3,) float64 metres; voxel i spans [origin + i g, origin + (i + 1) g].
     counts:     (N,) int32 number of distinct kept ellipsoids touching each voxel.
     stats:      free-form numbers for summaries (JSON-serialisable).
+    removed:    (R, 3) int64 voxels the floater filter removed (touched by fewer than
+                ``--min-splats-per-voxel`` ellipsoids), or None; the cover does not hold them.
     """
 
     indices: np.ndarray
@@ -32,6 +34,8 @@ class OccupancyGrid:
     origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
     counts: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
+    removed: np.ndarray | None = None
+    floater_loss: dict | None = None  # polycc.floaters.floater_loss of ``removed``, when computed
 
     def __len__(self) -> int:
         return int(self.indices.shape[0])

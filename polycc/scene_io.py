@@ -93,6 +93,15 @@ def read_ply(path: Path) -> RawSplats:
         ply = PlyData.read(str(path))
         if "vertex" not in ply:
             raise PolyccError(f"{path}: the .ply has no 'vertex' element; export the splats (or points) as vertices")
+        faces = [e for e in ply.elements if e.name in ("face", "tristrips", "edge")]
+        if faces:
+            e = faces[0]
+            raise PolyccError(
+                f"{path}: the .ply is a mesh ({e.count:,} '{e.name}' elements); polycc reads splats and points, "
+                "and reading only the mesh's vertices would leave its surfaces out of the cover; sample the mesh "
+                "surface into a dense point cloud (x y z radius) or splats first (mesh voxelization is not supported yet)"
+            )
+        _check_body_length(path, ply)
         v = ply["vertex"].data
     except PolyccError:
         raise
@@ -148,6 +157,52 @@ def read_ply(path: Path) -> RawSplats:
     else:
         op = np.ones(n, np.float32)
     return RawSplats(positions=pos, sigmas=sig, quats=quats, opacity=op, colors=_ply_colors(v, names))
+
+
+def _header_length(path: Path) -> int:
+    """Bytes of the .ply header, up to and including the newline after ``end_header``."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 20)
+    m = re.search(rb"end_header[ \t]*\r?\n", head)
+    if m is None:
+        raise PolyccError(f"{path}: no 'end_header' line in the first MiB; not a valid .ply header, re-export the file")
+    return m.end()
+
+
+def _check_body_length(path: Path, ply) -> None:
+    """Refuse a body longer than its header declares (for a shorter one plyfile already fails).
+
+    Data past the declared elements would be ignored: splats the header does not count would be
+    silently missing from the cover."""
+    size = path.stat().st_size
+    declared = sum(int(e.count) for e in ply.elements)
+    if ply.text:
+        with open(path, "rb") as f:
+            f.seek(_header_length(path))
+            rows = sum(1 for line in f if line.strip())
+        if rows != declared:
+            raise PolyccError(
+                f"{path}: the header declares {declared:,} rows but the ASCII body holds {rows:,}; "
+                "the file was cut or appended to; re-export it"
+            )
+        return
+    if any(getattr(p, "len_dtype", None) is not None for e in ply.elements for p in e.properties):
+        with open(path, "rb") as f:  # list properties: let plyfile walk the body and see where it ends
+            type(ply).read(f, mmap=False)
+            end = f.tell()
+    else:
+        end = _header_length(path) + sum(int(e.count) * e.dtype().itemsize for e in ply.elements)
+    if end != size:
+        extra = size - end
+        what = f"{extra:,} bytes more" if extra > 0 else f"{-extra:,} bytes fewer"
+        recs = ""
+        v = ply["vertex"]
+        if extra > 0 and len(ply.elements) == 1 and extra % v.dtype().itemsize == 0:
+            recs = f" ({extra // v.dtype().itemsize:,} more vertices than its {v.count:,})"
+        raise PolyccError(
+            f"{path}: the binary body holds {what} than the header declares{recs}; the file was cut or appended "
+            "to, so some splats would be ignored; re-export it with the right vertex count"
+        )
 
 
 def _ply_colors(v, names: list[str]) -> np.ndarray | None:

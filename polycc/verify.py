@@ -265,6 +265,8 @@ class VerifyReport:
     certificate_failures: list = field(default_factory=list)
     voxels: int = 0
     grid_matches_cover: bool = True
+    occupancy: str = "exact"  # "exact", or "filtered" (floater filter: certified against the filtered V+)
+    floater_filter: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -272,6 +274,7 @@ class VerifyReport:
 
     def as_dict(self) -> dict:
         return {"ok": self.ok, "voxels": self.voxels, "grid_matches_cover": self.grid_matches_cover,
+                "occupancy": self.occupancy, "floater_filter": self.floater_filter,
                 "certificate_levels": self.certificate_levels, "certificate_failures": self.certificate_failures[:20],
                 "levels": [l.__dict__ for l in self.levels]}
 

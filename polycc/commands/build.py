@@ -11,11 +11,24 @@ import numpy as np
 from polycc import cycle_model
 from polycc.budget import Budget, select
 from polycc.codegen import write_outputs
-from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy, print_summary
+from polycc.barrier import KAPPA_MAX, KAPPA_MIN
+from polycc.commands.argtypes import number
+from polycc.commands.scene_args import (
+    add_scene_options,
+    floater_text,
+    load_scene_and_occupancy,
+    output_dir,
+    print_summary,
+    resolve_scene_settings,
+)
 from polycc.console import console, progress_bar
 from polycc.cover import COVER_COSTS, DEFAULT_MERGE_COST, build_cover
 from polycc.errors import PolyccError
-from polycc.reduce import polytope_vertices
+from polycc.reduce import MIN_PLANES, polytope_vertices
+from polycc.scene_layout import MAX_PLANES
+
+FLASH_KB_MAX = 1008.0  # STM32F405: 1 MiB flash minus the 16 KiB bootloader
+MC_SAMPLES_MIN = 1000
 from polycc.report_plot import write_report
 
 
@@ -31,40 +44,41 @@ def register(sub) -> None:
     )
     p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply or .splat file")
     p.add_argument("-o", "--output", default="out", metavar="OUT", help="output folder (default: %(default)s)")
-    p.add_argument("--flash-kb", type=float, default=64.0, metavar="N",
-                   help="flash budget for all generated constant data, KiB (1 KiB = 1024 bytes) (default: %(default)s)")
-    p.add_argument("--max-halfplanes", type=int, default=None, metavar="M",
-                   help="cap on the total number of stored half-planes, bounding on-board compute (default: no cap)")
-    p.add_argument("--rate-hz", type=float, default=None, metavar="R",
+    p.add_argument("--flash-kb", type=number(float, 0.0, FLASH_KB_MAX, lo_open=True, unit="KiB"), default=64.0,
+                   metavar="N",
+                   help="flash budget for all generated constant data, KiB (1 KiB = 1024 bytes); at most "
+                        f"{FLASH_KB_MAX:g}, the STM32F405's application flash (default: %(default)s)")
+    p.add_argument("--max-halfplanes", type=number(int, MIN_PLANES, MAX_PLANES), default=None, metavar="M",
+                   help="cap on the total number of stored half-planes, bounding on-board compute, "
+                        f"{MIN_PLANES}..{MAX_PLANES} (default: no cap)")
+    p.add_argument("--rate-hz", type=number(float, 10.0, 1000.0, unit="Hz"), default=None, metavar="R",
                    help="derive a half-plane cap from the kernel's Cortex-M4 cycle model so the worst-case "
-                        f"evaluation fits in --cpu-share of a 168 MHz CPU at R Hz (default: not used)")
-    p.add_argument("--cpu-share", type=float, default=cycle_model.DEFAULT_CPU_SHARE, metavar="F",
-                   help="fraction of the CPU the filter may use with --rate-hz, 0..1 (default: %(default)s)")
-    p.add_argument("--kappa", type=float, default=100.0, metavar="K",
-                   help="soft-min/soft-max sharpness recorded in the header, 1/m (default: %(default)s, as in the paper)")
-    p.add_argument("--neighborhood", type=int, default=1, metavar="B",
-                   help="cluster radius b in voxels (L-infinity), Eq. 10 (default: %(default)s)")
+                        "evaluation fits in --cpu-share of a 168 MHz CPU at R Hz, 10..1000 (the app's range) "
+                        "(default: not used)")
+    p.add_argument("--cpu-share", type=number(float, 0.0, 1.0, lo_open=True), default=cycle_model.DEFAULT_CPU_SHARE,
+                   metavar="F", help="fraction of the CPU the filter may use with --rate-hz, in (0, 1] "
+                                     "(default: %(default)s)")
+    p.add_argument("--kappa", type=number(float, float(KAPPA_MIN), float(KAPPA_MAX), unit="1/m"), default=100.0, metavar="K",
+                   help="soft-min/soft-max sharpness recorded in the header, 1/m, in [1, 10000] (the kernel's "
+                        "range; outside it the app only hovers) (default: %(default)s, as in the paper)")
+    p.add_argument("--neighborhood", type=number(int, 0, 4, unit="voxels"), default=1, metavar="B",
+                   help="cluster radius b in voxels (L-infinity), Eq. 10, 0..4 (default: %(default)s)")
     p.add_argument("--boxes", action=argparse.BooleanOptionalAction, default=True,
                    help="add one exact all-occupied box per voxel whose cluster wastes volume to the set-cover "
                         "candidates, so the sub-cover wastes nothing (--no-boxes: the paper's clusters only) "
                         "(default: on)")
     p.add_argument("--merge-cost", choices=COVER_COSTS, default=DEFAULT_MERGE_COST,
                    help="merge cost: 'paper' = W of the union (Eq. 13), 'delta' = the free volume a merge adds, 'best' = both, keep the better; see `polycc cover --help` (default: %(default)s)")
-    p.add_argument("--mc-samples", type=int, default=100_000, metavar="S",
-                   help="Monte Carlo samples per candidate for conservativeness (default: %(default)s)")
+    p.add_argument("--mc-samples", type=number(int, MC_SAMPLES_MIN, 100_000_000), default=100_000, metavar="S",
+                   help=f"Monte Carlo samples per candidate for conservativeness, at least {MC_SAMPLES_MIN:,} "
+                        "(default: %(default)s)")
     add_scene_options(p)
     p.set_defaults(func=run)
 
 
 def _budget(args) -> Budget:
-    if not (args.flash_kb > 0):
-        raise PolyccError(f"--flash-kb {args.flash_kb}: must be a positive size in KiB")
-    if args.max_halfplanes is not None and args.max_halfplanes < 1:
-        raise PolyccError(f"--max-halfplanes {args.max_halfplanes}: must be at least 1")
     rate_cycles = None
     if args.rate_hz is not None:
-        if not (args.rate_hz > 0) or not (0 < args.cpu_share <= 1):
-            raise PolyccError("--rate-hz must be > 0 Hz and --cpu-share in (0, 1]")
         rate_cycles = cycle_model.cycle_budget(args.rate_hz, args.cpu_share)
     return Budget(int(args.flash_kb * 1024), args.max_halfplanes, rate_cycles)
 
@@ -72,7 +86,8 @@ def _budget(args) -> Budget:
 def run(args: argparse.Namespace) -> int:
     t_all = time.perf_counter()
     budget = _budget(args)
-    out = Path(args.output)
+    out = output_dir(args.output)
+    settings = resolve_scene_settings(args)
     scene, occ = load_scene_and_occupancy(args.scene, args)
     t = time.perf_counter()
     with console.status("cover: clusters, set cover, merging"):
@@ -88,10 +103,9 @@ def run(args: argparse.Namespace) -> int:
     t_budget = time.perf_counter() - t
     us = cycle_model.estimate_us(best.packed)
 
+    rec = settings.as_record()
     opts = {
-        "sigma": args.sigma, "min_opacity": args.min_opacity, "transform": args.transform, "scale": args.scale,
-        "crop": list(args.crop) if args.crop else None, "drop_invalid": args.drop_invalid, "voxel": args.voxel,
-        "min_splats_per_voxel": args.min_splats_per_voxel, "flash_kb": args.flash_kb,
+        **{k: v for k, v in rec.items() if k != "world_matrix"}, "flash_kb": args.flash_kb,
         "max_halfplanes": args.max_halfplanes, "rate_hz": args.rate_hz, "cpu_share": args.cpu_share,
         "kappa": args.kappa, "neighborhood": args.neighborhood, "boxes": args.boxes, "merge_cost": args.merge_cost,
         "mc_samples": args.mc_samples,
@@ -109,13 +123,15 @@ def run(args: argparse.Namespace) -> int:
         "max_halfplanes": min(best.caps.values()), "binding_budget": binding,
         "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
         "union_volume_m3": best.union_volume, "modelled_us": us,
+        "floater_filter": occ.stats.get("floater_filter"),
         "candidates": [{"n": c.n, "normal_table_cap": c.max_normals, "normals": c.n_normals, "halfplanes": c.n_planes, "dropped": c.dropped, "bytes": c.bytes,
                         "conservativeness": c.conservativeness, "ci95": c.conservativeness_ci} for c in cands],
     }
     transform = None
     if args.transform or args.scale:
-        transform = scene.options.world_matrix().tolist()
+        transform = rec["world_matrix"]
     meta = {
+        "scene_settings": rec, "floater_line": floater_text(occ.stats) or "none (--min-splats-per-voxel 1)",
         "kappa": args.kappa, "budget_bytes": budget.flash_bytes, "max_planes": min(best.caps.values()),
         "binding": binding, "conservativeness_text": cons_text, "options": opts, "transform": transform,
         "scene": {"name": Path(args.scene).name, "path": str(args.scene), "sha256": scene.sha256},
@@ -143,6 +159,7 @@ def run(args: argparse.Namespace) -> int:
         ("splats read / kept", f"{scene.stats.read:,} / {scene.stats.kept:,}"),
         ("invalid / opacity-filtered / cropped", f"{scene.stats.invalid:,} / {scene.stats.filtered_opacity:,} / {scene.stats.cropped:,}"),
         ("voxels (g)", f"{len(occ):,} ({occ.voxel_size:g} m)"),
+        *([("floater filter", floater_text(occ.stats))] if floater_text(occ.stats) else []),
         ("N before merging (sub-cover)", f"{family.n_max:,}"),
         ("n chosen", f"{best.n}"),
         ("half-planes (dropped by reduction / merged)", f"{best.n_planes:,} ({best.dropped:,} / {best.merged:,})"),

@@ -9,7 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy
+from polycc.commands.argtypes import number
+from polycc.commands.scene_args import (
+    add_scene_options,
+    floater_text,
+    load_scene_and_occupancy,
+    output_dir,
+    resolve_scene_settings,
+)
 from polycc.console import console, progress_bar, summary_table
 from polycc.cover import COVER_COSTS, DEFAULT_MERGE_COST, build_cover
 from polycc.cover_family import CoverFamily
@@ -32,7 +39,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output directory (created if missing)")
     add_scene_options(p)
     c = p.add_argument_group("cover options")
-    c.add_argument("--neighborhood", type=int, default=1, metavar="B",
+    c.add_argument("--neighborhood", type=number(int, 0, 4, unit="voxels"), default=1, metavar="B",
                    help="cluster radius b in voxels: C_v holds the occupied voxels within L-inf distance b*g "
                         "of v (paper Eq. 10) (default: %(default)s)")
     c.add_argument("--merge-cost", choices=COVER_COSTS, default=DEFAULT_MERGE_COST,
@@ -52,7 +59,7 @@ def register(sub) -> None:
     c.add_argument("--plot-n", default="10,50,150", metavar="N1,N2,...",
                    help="write OUT/cover_n<k>.png for these n (comma list; values above N are skipped; empty = "
                         "none) (default: %(default)s)")
-    c.add_argument("--mc-samples", type=int, default=20_000, metavar="S",
+    c.add_argument("--mc-samples", type=number(int, 1000, 100_000_000), default=20_000, metavar="S",
                    help="Monte Carlo samples per level for the conservativeness curve in tradeoff.png "
                         "(default: %(default)s)")
     c.add_argument("--seed", type=int, default=0, help="random seed for the Monte Carlo estimates (default: 0)")
@@ -111,11 +118,9 @@ def tradeoff_curve(fam: CoverFamily, samples: int, seed: int = 0) -> list[tuple[
 
 
 def run(args: argparse.Namespace) -> int:
-    out = Path(args.output)
-    if out.exists() and not out.is_dir():
-        raise PolyccError(f"{out}: exists and is not a directory; pass a directory for -o")
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(args.output)
     plot_n = _parse_levels(args.plot_n)
+    settings = resolve_scene_settings(args)
     scene, grid = load_scene_and_occupancy(args.scene, args)
     costs = [args.merge_cost]
     if args.merge_cost != "best" and args.compare:
@@ -138,9 +143,7 @@ def run(args: argparse.Namespace) -> int:
     fam = families[args.merge_cost] if args.merge_cost in families else build_pick(families)
     fam.meta.update({
         "scene": str(scene.path), "scene_sha256": scene.sha256, "voxel_size": grid.voxel_size,
-        "scene_options": {"sigma": args.sigma, "min_opacity": args.min_opacity, "transform": args.transform,
-                          "scale": args.scale, "crop": args.crop, "drop_invalid": args.drop_invalid,
-                          "min_splats_per_voxel": args.min_splats_per_voxel},
+        "scene_settings": settings.as_record(), "floater_filter": grid.stats.get("floater_filter"),
     })
     path = fam.save(out)
 
@@ -171,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
     t = fam.meta["timings_s"]
     rows = [
         ("occupied voxels |V+|", f"{len(grid):,}"),
+        *([("floater filter", floater_text(grid.stats))] if floater_text(grid.stats) else []),
         ("neighbourhood b", str(args.neighborhood) + (" (+ exact boxes)" if args.boxes else " (clusters only)")),
         ("distinct cluster patterns", f"{fam.meta['clusters_distinct_patterns']:,}"),
         ("sub-cover size N", f"{fam.n_max:,}"),

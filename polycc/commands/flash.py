@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from polycc import __version__
+from polycc.commands.argtypes import number
 from polycc.errors import PolyccError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -50,7 +51,7 @@ def register(subparsers) -> None:
     p.add_argument("--uri", default=os.environ.get("CFLIB_URI", DEFAULT_URI), metavar="URI",
                    help="Crazyflie radio URI (default: $CFLIB_URI or radio://0/80/2M/E7E7E7E7E7)")
     p.add_argument("--build-dir", metavar="DIR", help="where to build (default: OUT/firmware)")
-    p.add_argument("--jobs", "-j", type=int, default=os.cpu_count() or 1, metavar="N",
+    p.add_argument("--jobs", "-j", type=number(int, 1, 256), default=os.cpu_count() or 1, metavar="N",
                    help="parallel make jobs (default: the number of CPUs, %(default)s here)")
     p.add_argument("--no-flash", action="store_true", help="build and report sizes, do not flash (default: flash)")
     p.add_argument("--dry-run", action="store_true", help="check the toolchain, firmware tree and radio, print every step, run none (default: off)")

@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from polycc.commands.sim import _point
+from polycc.commands.argtypes import add_point_option, number
 from polycc.errors import PolyccError
 
 HELP = "fly a Crazyflie running the polycc app (or `polycc sim-device`) to a goal, streaming its logs (needs cflib)"
@@ -36,17 +36,17 @@ def register(subparsers) -> None:
     p.add_argument("--uri", default=os.environ.get("CFLIB_URI", DEFAULT_URI),
                    help="cflib URI: radio://0/80/2M/E7E7E7E7E7, usb://0, serial://ttyUSB-polycc0, udp://HOST:PORT "
                         "(default: $CFLIB_URI, else %(default)s as `polycc sim-device --udp` serves)")
-    p.add_argument("--goal", type=_point, required=True, metavar="X,Y,Z", help="goal position, m (world frame)")
+    add_point_option(p, "--goal", required=True, help="goal position, m (world frame)")
     p.add_argument("--log", default="psi,ux,uy,uz", metavar="VARS",
                    help="comma-separated log variables to stream besides the position and status; a name without "
                         "a group is in `polycc` (e.g. psi, ux, stateEstimate.vx) (default: %(default)s)")
     p.add_argument("--csv", metavar="FILE", default="fly_log.csv",
                    help="log file: one row per position sample, time in s from the first sample (default: %(default)s)")
-    p.add_argument("--timeout", type=float, default=60.0, metavar="S",
+    p.add_argument("--timeout", type=number(float, 0.0, 1e6, lo_open=True, unit="s"), default=60.0, metavar="S",
                    help="give up (and stop) after S seconds of flight (default: %(default)s)")
-    p.add_argument("--arrive-tol", type=float, default=0.1, metavar="M",
+    p.add_argument("--arrive-tol", type=number(float, 0.0, 10.0, lo_open=True, unit="m"), default=0.1, metavar="M",
                    help="arrival: distance to the goal, m (default: %(default)s)")
-    p.add_argument("--period-ms", type=int, default=20, metavar="MS",
+    p.add_argument("--period-ms", type=number(int, 10, 2550, unit="ms"), default=20, metavar="MS",
                    help="log period, ms (10..2550, a multiple of 10) (default: %(default)s)")
     p.set_defaults(func=run)
 

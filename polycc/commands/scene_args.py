@@ -1,86 +1,247 @@
 """The scene options every scene-reading command shares, with one meaning everywhere.
 
-``voxelize``, ``cover``, ``verify``, ``build`` and ``sim`` all call
-:func:`add_scene_options` and :func:`load_scene_and_occupancy`.
+``voxelize``, ``cover`` and ``build`` make a scene's settings from the options; ``verify``,
+``sim`` and ``sim-device`` take them from the build folder they read (:func:`recorded_build`),
+and an explicit option that disagrees with the folder is an error
+(:func:`resolve_scene_settings`), so a check never runs on other geometry than the build's.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
+
+from polycc.commands.argtypes import NEGATIVE_VALUE_OPTIONS, number, numbers
 from polycc.console import console, progress_bar, summary_table
 from polycc.errors import PolyccError
+from polycc.floaters import floater_loss, loss_record
 from polycc.occupancy import voxelize
 from polycc.occupancy_grid import OccupancyGrid
-from polycc.scene import Scene, SceneOptions, load_scene
-from polycc.transform import load_transform
+from polycc.scene import Scene, SceneOptions, file_sha256, load_scene
+from polycc.transform import load_transform, scale_matrix
 
 
-def _crop(text: str) -> tuple[float, ...]:
-    try:
-        vals = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError("expected six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres)") from None
-    if len(vals) != 6:
-        raise argparse.ArgumentTypeError(f"expected six numbers xmin,ymin,zmin,xmax,ymax,zmax (metres), got {len(vals)}")
-    return vals
+SCENE_DEFAULTS = {
+    "sigma": 1.0, "min_opacity": 0.0, "transform": None, "scale": None, "crop": None, "drop_invalid": False,
+    "voxel": 0.05, "min_splats_per_voxel": 1,
+}
+_IDENTITY = np.eye(4)
 
 
-def add_scene_options(parser: argparse.ArgumentParser, voxel_default: float = 0.05) -> None:
-    """Add --sigma --min-opacity --transform --scale --crop --drop-invalid --voxel --min-splats-per-voxel."""
-    g = parser.add_argument_group("scene options (shared by every command that reads a scene)")
-    g.add_argument("--sigma", type=float, default=1.0, metavar="K",
+@dataclass
+class SceneSettings:
+    """Every scene option of one run, after defaults and the build's record are applied.
+
+    ``world_matrix`` is the 4x4 file -> world (metres) matrix that ``transform`` (a JSON file,
+    kept for provenance) and ``scale`` compose to; it is what is recorded and compared, so a
+    build folder stays usable when the transform file moves."""
+
+    sigma: float = 1.0
+    min_opacity: float = 0.0
+    transform: str | None = None
+    scale: float | None = None
+    crop: tuple | None = None
+    drop_invalid: bool = False
+    voxel: float = 0.05
+    min_splats_per_voxel: int = 1
+    world_matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def scene_options(self) -> SceneOptions:
+        T = np.asarray(self.world_matrix, np.float64)
+        return SceneOptions(sigma=self.sigma, min_opacity=self.min_opacity,
+                            transform=None if np.array_equal(T, _IDENTITY) else T, scale=None,
+                            crop=None if self.crop is None else tuple(self.crop), drop_invalid=self.drop_invalid)
+
+    def as_record(self) -> dict:
+        """JSON-ready record (manifest.json ``scene_settings``, cover.npz meta)."""
+        return {"sigma": self.sigma, "min_opacity": self.min_opacity, "transform": self.transform,
+                "scale": self.scale, "crop": None if self.crop is None else list(self.crop),
+                "drop_invalid": self.drop_invalid, "voxel": self.voxel,
+                "min_splats_per_voxel": self.min_splats_per_voxel,
+                "world_matrix": np.asarray(self.world_matrix, np.float64).tolist()}
+
+    @staticmethod
+    def from_record(rec: dict) -> "SceneSettings":
+        kw = {k: rec.get(k, v) for k, v in SCENE_DEFAULTS.items()}
+        if kw["crop"] is not None:
+            kw["crop"] = tuple(float(c) for c in kw["crop"])
+        T = rec.get("world_matrix")
+        return SceneSettings(**kw, world_matrix=np.eye(4) if T is None else np.asarray(T, np.float64))
+
+
+def add_scene_options(parser: argparse.ArgumentParser, from_dir: bool = False) -> None:
+    """Add --sigma --min-opacity --transform --scale --crop --drop-invalid --voxel --min-splats-per-voxel.
+
+    Every default is None here so that a command reading a build folder (``from_dir``) can tell
+    an explicit option from an absent one: absent options take the folder's recorded value, and
+    an explicit one that disagrees with it is an error (:func:`resolve_scene_settings`)."""
+    d = SCENE_DEFAULTS
+    tail = " (default: the value DIR was built with)" if from_dir else ""
+    g = parser.add_argument_group("scene options (shared by every command that reads a scene"
+                                  + ("; by default taken from DIR's manifest" if from_dir else "") + ")")
+    g.add_argument("--sigma", type=number(float, 0.0, 100.0, lo_open=True, unit="standard deviations"), metavar="K",
                    help="ellipsoid extent in standard deviations: E = {p : (p-c)^T Sigma^-1 (p-c) <= K^2}. "
-                        "1 = the paper, 3 = the rasterizer's render extent (default: %(default)s)")
-    g.add_argument("--min-opacity", type=float, default=0.0, metavar="A",
-                   help="drop splats whose activated opacity (0..1) is below A; 0 keeps all (default: %(default)s)")
+                        f"1 = the paper, 3 = the rasterizer's render extent (default: {d['sigma']:g}){tail}")
+    g.add_argument("--min-opacity", type=number(float, 0.0, 1.0), metavar="A",
+                   help="drop splats whose activated opacity (0..1) is below A; 0 keeps all "
+                        f"(default: {d['min_opacity']:g}){tail}")
     g.add_argument("--transform", metavar="FILE.json",
                    help="JSON file with a 4x4 matrix {\"matrix\": ...} or a similarity {\"scale\", \"rotation\", "
-                        "\"translation\"} from the trainer's frame to metres (default: identity)")
-    g.add_argument("--scale", type=float, default=None, metavar="S",
-                   help="uniform scale from file units to metres, applied after --transform (default: 1)")
-    g.add_argument("--crop", type=_crop, default=None, metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+                        f"\"translation\"}} from the trainer's frame to metres (default: identity){tail}")
+    g.add_argument("--scale", type=number(float, 0.0, lo_open=True), metavar="S",
+                   help=f"uniform scale from file units to metres, applied after --transform (default: 1){tail}")
+    g.add_argument("--crop", type=numbers(6, "xmin,ymin,zmin,xmax,ymax,zmax in metres"),
+                   metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
                    help="keep only splats whose ellipsoid meets this box, in metres after --transform/--scale; "
-                        "ellipsoids straddling the boundary are kept whole (default: no crop)")
-    g.add_argument("--drop-invalid", action="store_true",
+                        f"ellipsoids straddling the boundary are kept whole (default: no crop){tail}")
+    NEGATIVE_VALUE_OPTIONS.add("--crop")
+    g.add_argument("--drop-invalid", action="store_const", const=True, default=None,
                    help="skip splats with NaN/Inf values or a zero-length quaternion instead of refusing the file "
-                        "(default: refuse)")
-    g.add_argument("--voxel", type=float, default=voxel_default, metavar="G",
-                   help="voxel side length g in metres; voxel corners lie on multiples of g (default: %(default)s)")
-    g.add_argument("--min-splats-per-voxel", type=int, default=1, metavar="M",
-                   help="floater filter: keep a voxel only if at least M distinct ellipsoids touch it; "
-                        "the paper's hardware setting was 30 (default: %(default)s)")
+                        f"(default: refuse){tail}")
+    g.add_argument("--voxel", type=number(float, 0.0, 10.0, lo_open=True, unit="m"), metavar="G",
+                   help=f"voxel side length g in metres; voxel corners lie on multiples of g "
+                        f"(default: {d['voxel']:g}){tail}")
+    g.add_argument("--min-splats-per-voxel", type=number(int, 1, 1_000_000), metavar="M",
+                   help="floater filter: keep a voxel only if at least M distinct ellipsoids touch it (the paper's "
+                        "hardware setting was 30). With M > 1 the cover is certified only against the FILTERED "
+                        "occupancy: splats in removed voxels may lie partly outside it (the build reports how many "
+                        f"and how deep) (default: {d['min_splats_per_voxel']}){tail}")
 
 
-def scene_options_from_args(args: argparse.Namespace) -> SceneOptions:
-    return SceneOptions(
-        sigma=args.sigma,
-        min_opacity=args.min_opacity,
-        transform=load_transform(args.transform) if args.transform else None,
-        scale=args.scale,
-        crop=args.crop,
-        drop_invalid=args.drop_invalid,
-    )
+def _world_matrix(transform: str | None, scale: float | None) -> np.ndarray:
+    T = load_transform(transform) if transform else np.eye(4)
+    return scale_matrix(scale) @ T if scale is not None else T
+
+
+def _show(v) -> str:
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, (tuple, list)):
+        return ",".join(_show(x) for x in v)
+    return str(v)
+
+
+def resolve_scene_settings(args: argparse.Namespace, recorded: SceneSettings | None = None,
+                           source: str = "") -> SceneSettings:
+    """The scene settings of this run: explicit options, else ``recorded`` (a build folder's),
+    else the defaults.  An explicit option that disagrees with ``recorded`` raises a PolyccError
+    naming both values.  Also stored as ``args.scene_settings``."""
+    out = SceneSettings() if recorded is None else SceneSettings.from_record(recorded.as_record())
+    for key in ("sigma", "min_opacity", "crop", "drop_invalid", "voxel", "min_splats_per_voxel"):
+        v = getattr(args, key, None)
+        if v is None:
+            continue
+        if isinstance(v, (tuple, list)):
+            v = tuple(float(x) for x in v)
+        if recorded is not None:
+            r = getattr(recorded, key)
+            same = (r is None and v is None) or (r is not None and (
+                np.allclose(np.asarray(v, float), np.asarray(r, float), rtol=1e-12, atol=0)
+                if isinstance(v, (tuple, float, int)) and not isinstance(v, bool) else v == r))
+            if not same:
+                opt = "--" + key.replace("_", "-")
+                raise PolyccError(
+                    f"{opt} {_show(v)} disagrees with {source}, which was built with {opt} {_show(r)}; "
+                    f"drop {opt} to use the build's value, or rebuild with {opt} {_show(v)}")
+        setattr(out, key, v)
+    transform, scale = getattr(args, "transform", None), getattr(args, "scale", None)
+    if transform is not None or scale is not None:
+        T = _world_matrix(transform, scale)
+        if recorded is not None and not np.allclose(T, recorded.world_matrix, rtol=1e-12, atol=1e-12):
+            given = " ".join(x for x in (f"--transform {transform}" if transform else "",
+                                         f"--scale {scale:g}" if scale is not None else "") if x)
+            raise PolyccError(
+                f"{given} gives the file->world matrix {np.round(T, 6).tolist()}, but {source} was built with "
+                f"{np.round(np.asarray(recorded.world_matrix), 6).tolist()}; drop --transform/--scale to use the "
+                "build's frame, or rebuild with these options")
+        out.transform, out.scale, out.world_matrix = transform, scale, T
+    args.scene_settings = out
+    return out
+
+
+def recorded_build(path: str | Path) -> tuple[SceneSettings | None, dict]:
+    """(scene settings, scene record {name, path, sha256}) that a `polycc build` or `polycc cover`
+    folder was made with; (None, {}) when it records none."""
+    path = Path(path)
+    man = path / "manifest.json" if path.is_dir() else path
+    if man.suffix == ".json" and man.is_file():
+        try:
+            m = json.loads(man.read_text())
+        except (OSError, ValueError) as exc:
+            raise PolyccError(f"{man}: not readable JSON ({exc}); rebuild with `polycc build`") from None
+        rec = m.get("scene_settings")
+        if rec is None and "options" in m:  # manifests written before scene_settings
+            rec = dict(m["options"])
+            rec["world_matrix"] = m.get("transform")
+        return (SceneSettings.from_record(rec) if rec else None), m.get("scene", {})
+    npz = path / "cover.npz" if path.is_dir() else path
+    if npz.suffix == ".npz" and npz.is_file():
+        try:
+            with np.load(npz, allow_pickle=False) as z:
+                meta = json.loads(str(z["meta"])) if "meta" in z else {}
+        except (OSError, ValueError) as exc:
+            raise PolyccError(f"{npz}: not a readable cover file ({exc}); re-create it with `polycc cover`") from None
+        rec = meta.get("scene_settings")
+        scene = {"path": meta.get("scene"), "sha256": meta.get("scene_sha256")}
+        return (SceneSettings.from_record(rec) if rec else None), scene
+    return None, {}
+
+
+def check_scene_file(scene_path: str | Path, recorded_scene: dict, source: str) -> None:
+    """An explicit scene file must be the one the build was made from (same sha256)."""
+    sha = recorded_scene.get("sha256")
+    if not sha:
+        return
+    p = Path(scene_path)
+    if not p.is_file():
+        raise PolyccError(f"{p}: no such scene file; check the path")
+    have = file_sha256(p)
+    if have != sha:
+        raise PolyccError(
+            f"{p} (sha256 {have[:12]}...) is not the scene {source} was built from "
+            f"({recorded_scene.get('path', '?')}, sha256 {sha[:12]}...); pass that scene, or rebuild from this one")
+
+
+def output_dir(path: str | Path) -> Path:
+    """The output folder ``-o``, created; a one-line error if it is a file or cannot be made."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise PolyccError(f"-o {out}: exists and is a file, not a folder; pass a folder path (it is created if missing)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PolyccError(f"-o {out}: cannot create the folder ({exc.strerror or exc}); choose a writable path") from None
+    return out
 
 
 def load_scene_from_args(scene_path: str, args: argparse.Namespace) -> Scene:
+    settings = getattr(args, "scene_settings", None) or resolve_scene_settings(args)
     t = time.perf_counter()
     with console.status(f"reading {scene_path}"):
-        scene = load_scene(scene_path, scene_options_from_args(args))
+        scene = load_scene(scene_path, settings.scene_options())
     scene.stats_time_s = time.perf_counter() - t
     return scene
 
 
 def voxelize_scene(scene: Scene, args: argparse.Namespace) -> OccupancyGrid:
+    st = getattr(args, "scene_settings", None) or resolve_scene_settings(args)
     n = len(scene.ellipsoids)
     t = time.perf_counter()
-    with progress_bar(f"voxelizing at g = {args.voxel:g} m", n) as update:
-        occ = voxelize(scene.ellipsoids, args.voxel, args.min_splats_per_voxel, progress=update)
+    with progress_bar(f"voxelizing at g = {st.voxel:g} m", n) as update:
+        occ = voxelize(scene.ellipsoids, st.voxel, st.min_splats_per_voxel, progress=update)
     occ.stats["time_s"] = time.perf_counter() - t
+    if st.min_splats_per_voxel > 1 and occ.removed is not None and len(occ.removed):
+        with console.status("floater filter: splats it leaves partly outside the cover, and how deep"):
+            occ.floater_loss = floater_loss(scene.ellipsoids, occ.indices, occ.removed, occ.voxel_size, occ.origin)
+        occ.stats["floater_filter"] = loss_record(occ.floater_loss)
     if len(occ) == 0:
         raise PolyccError(
-            f"{scene.path}: no voxel has {args.min_splats_per_voxel} or more splats touching it; "
+            f"{scene.path}: no voxel has {st.min_splats_per_voxel} or more splats touching it; "
             "lower --min-splats-per-voxel or use a larger --voxel"
         )
     return occ
@@ -118,13 +279,36 @@ def occupancy_summary_rows(occ: OccupancyGrid) -> list[tuple[str, str]]:
         ("occupied bounds", f"[{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, {hi[2]:.2f}] m"),
         ("AABB candidate voxels tested", f"{st.get('aabb_candidate_voxels', 0):,}"),
     ]
-    if st.get("min_splats_per_voxel", 1) > 1:
-        rows.append((f"removed by floater filter (< {st['min_splats_per_voxel']} splats)",
-                     f"{st['voxels_removed_by_floater_filter']:,}"))
+    rows += floater_rows(occ)
     if "time_s" in st:
         n = st.get("ellipsoids", 0)
         rows.append(("voxelize time", f"{st['time_s']:.2f} s ({n / max(st['time_s'], 1e-9):,.0f} splats/s)"))
     return rows
+
+
+def floater_text(stats: dict) -> str | None:
+    """One line on what the floater filter gave up (None without the filter)."""
+    f = stats.get("floater_filter")
+    m = stats.get("min_splats_per_voxel", 1)
+    if m <= 1:
+        return None
+    if not f or not f["voxels_removed"]:
+        return f"floater filter M = {m}: no voxel removed, the cover holds every splat"
+    return (f"floater filter M = {m}: {f['voxels_removed']:,} voxels removed; {f['splats_not_fully_covered']:,} splats "
+            f"then NOT fully covered, up to {f['max_depth_outside_m']:.4f} m outside the cover (certified against "
+            "the filtered occupancy only)")
+
+
+def floater_rows(occ: OccupancyGrid) -> list[tuple[str, str]]:
+    st = occ.stats
+    if st.get("min_splats_per_voxel", 1) <= 1:
+        return []
+    f = st.get("floater_filter") or {"voxels_removed": 0, "splats_not_fully_covered": 0, "max_depth_outside_m": 0.0}
+    return [
+        (f"floater filter (M = {st['min_splats_per_voxel']}): voxels removed", f"{f['voxels_removed']:,}"),
+        ("splats not fully covered (certified vs the FILTERED occupancy only)", f"{f['splats_not_fully_covered']:,}"),
+        ("largest depth outside the cover (computed, <= bound)", f"{f['max_depth_outside_m']:.4f} m"),
+    ]
 
 
 def print_summary(title: str, rows: list[tuple[str, str]]) -> None:

@@ -2,28 +2,23 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 
-from polycc.commands.scene_args import add_scene_options, load_scene_from_args
+from polycc.commands.argtypes import add_point_option, number
+from polycc.commands.scene_args import (
+    add_scene_options,
+    check_scene_file,
+    load_scene_from_args,
+    recorded_build,
+    resolve_scene_settings,
+)
 from polycc.errors import PolyccError
 
 HELP = "fly the Crazyflie app (same C code, host build) through the scene and check clearance"
-
-
-def _point(text: str) -> np.ndarray:
-    try:
-        v = [float(s) for s in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected x,y,z in metres, e.g. 0,1.5,1") from None
-    if len(v) != 3 or not all(math.isfinite(a) for a in v):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected three finite numbers x,y,z in metres")
-    return np.array(v)
 
 
 def register(subparsers) -> None:
@@ -36,57 +31,69 @@ def register(subparsers) -> None:
             "simulated 1 kHz FreeRTOS clock. The vehicle model flies the app's velocity setpoints. Reports, "
             "per trial: success (within 5 cm of the goal), time, path length, minimum clearance to the "
             "ground-truth splat ellipsoids of SCENE (exact distance minus --radius), collisions (must be 0) "
-            "and the largest evalUs of the cycle model. Writes OUT/trajectories.png and OUT/sim.json. "
+            "and the largest evalUs of the cycle model. Writes OUT/trajectories.png, OUT/sim.json and "
+            "OUT/trajectories.npz (true positions per trial, m, one array per trial after every app period). "
+            "The scene and its options (transform, sigma, crop, ...) are the ones OUT was built with. "
             "Exit code 1 if any trial collides."
         ),
     )
     p.add_argument("out", metavar="OUT", help="build folder with polytopes.h and manifest.json (from `polycc build`)")
     p.add_argument("--scene", metavar="SCENE",
                    help="the splat scene (.ply/.splat) as ground truth; default: the path stored in OUT/manifest.json")
-    p.add_argument("--start", type=_point, metavar="X,Y,Z",
-                   help="start position, m (default: the scene's sidecar .json 'start', as `polycc demo-scene` writes)")
-    p.add_argument("--goal", type=_point, metavar="X,Y,Z",
-                   help="goal position, m (default: the scene's sidecar .json 'goal')")
+    add_point_option(p, "--start",
+                     help="start position, m (default: the scene's sidecar .json 'start', as `polycc demo-scene` writes)")
+    add_point_option(p, "--goal", help="goal position, m (default: the scene's sidecar .json 'goal')")
     p.add_argument("--dynamics", choices=("integrator", "crazyflie", "quadrotor"), default="integrator",
                    help="vehicle model: the paper's single integrator; the Crazyflie 2.1-like velocity tracking model "
                         "(tilt/thrust limits, attitude lag, 20 ms estimator delay); or the full rigid-body quadrotor "
                         "under a Crazyflie-like PID cascade (slowest) (default: %(default)s)")
-    p.add_argument("--trials", type=int, default=1, metavar="N",
+    p.add_argument("--trials", type=number(int, 1, 100_000), default=1, metavar="N",
                    help="flights from --start to --goal; trials after the first start up to --jitter m away (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed for start jitter and random pairs (default: %(default)s)")
-    p.add_argument("--jitter", type=float, default=0.05, metavar="M",
+    p.add_argument("--jitter", type=number(float, 0.0, 10.0, unit="m"), default=0.05, metavar="M",
                    help="largest start offset (m) of trials 2..N, per axis (default: %(default)s)")
-    p.add_argument("--random-pairs", type=int, default=0, metavar="N",
+    p.add_argument("--random-pairs", type=number(int, 0, 100_000), default=0, metavar="N",
                    help="instead of --start/--goal: the paper's protocol, N random start/goal pairs in free space "
                         "(psi >= 0.05 m) inside the splats' 0.5-99.5 percentile box, z >= 0.15 m; 0 = off (default: %(default)s)")
-    p.add_argument("--min-distance", type=float, default=2.0, metavar="D",
+    p.add_argument("--min-distance", type=number(float, 0.0, 1000.0, unit="m"), default=2.0, metavar="D",
                    help="random pairs: smallest start-goal distance, m (default: %(default)s)")
-    p.add_argument("--rate-hz", type=int, default=500, metavar="HZ",
+    p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=500, metavar="HZ",
                    help="app loop rate (param polycc.rateHz, 10..1000); the paper's simulations used 100 (dt = 0.01 s) (default: %(default)s)")
-    p.add_argument("--vmax", type=float, default=0.5, metavar="V", help="speed limit (param polycc.vmax), m/s (default: %(default)s)")
-    p.add_argument("--beta", type=float, default=1.0, metavar="B", help="CBF gain (param polycc.beta), 1/s (default: %(default)s)")
-    p.add_argument("--clf-gain", type=float, default=2.0, metavar="C",
+    p.add_argument("--vmax", type=number(float, 0.0, 10.0, lo_open=True, unit="m/s"), default=0.5, metavar="V", help="speed limit (param polycc.vmax), m/s (default: %(default)s)")
+    p.add_argument("--beta", type=number(float, 0.0, 1e6, lo_open=True, unit="1/s"), default=1.0, metavar="B", help="CBF gain (param polycc.beta), 1/s (default: %(default)s)")
+    p.add_argument("--clf-gain", type=number(float, 0.0, 1e6, unit="1/s"), default=2.0, metavar="C",
                    help="CLF decay rate (param polycc.clfGain), 1/s: u_nom = -(C/2)(x - goal) (default: %(default)s)")
-    p.add_argument("--radius", type=float, default=0.1, metavar="R",
+    p.add_argument("--radius", type=number(float, 0.0, 10.0, unit="m"), default=0.1, metavar="R",
                    help="agent radius (param polycc.radius), m; clearance is distance minus R (default: %(default)s)")
-    p.add_argument("--delay-ms", type=float, default=None, metavar="MS",
+    p.add_argument("--delay-ms", type=number(float, 0.0, 1000.0, unit="ms"), default=None, metavar="MS",
                    help="estimator delay, ms (default: 0 for integrator, 20 for crazyflie and quadrotor)")
-    p.add_argument("--t-max", type=float, default=None, metavar="S",
+    p.add_argument("--t-max", type=number(float, 0.0, 1e5, lo_open=True, unit="s"), default=None, metavar="S",
                    help="time limit per flight, s (default: 2 * distance / vmax + 10)")
     p.add_argument("--plot", metavar="FILE.png", help="trajectory plot (default: OUT/trajectories.png)")
-    add_scene_options(p)
+    add_scene_options(p, from_dir=True)
     p.set_defaults(func=run)
 
 
-def _scene_path(args, out: Path) -> str:
+def build_scene(args, out: Path) -> tuple[str | None, object, dict]:
+    """(scene path, recorded scene settings, recorded scene) of the build folder ``out``: the scene
+    is ``--scene`` if given (it must be the file the build was made from) or the manifest's."""
+    recorded, rec_scene = recorded_build(out)
     if args.scene:
-        return args.scene
-    man = out / "manifest.json"
-    if man.is_file():
-        path = json.loads(man.read_text()).get("scene", {}).get("path")
-        if path:
-            return path
-    raise PolyccError(f"{out}: no --scene given and manifest.json names no scene; pass --scene SCENE")
+        check_scene_file(args.scene, rec_scene, str(out))
+        return args.scene, recorded, rec_scene
+    path = rec_scene.get("path")
+    if path and not Path(path).is_file():
+        raise PolyccError(f"{out}: the scene it was built from, {path}, is not there any more; pass --scene SCENE "
+                          "(the same file, moved)")
+    return path, recorded, rec_scene
+
+
+def _scene_path(args, out: Path) -> str:
+    path, recorded, _ = build_scene(args, out)
+    if not path:
+        raise PolyccError(f"{out}: no --scene given and manifest.json names no scene; pass --scene SCENE")
+    resolve_scene_settings(args, recorded, str(out))
+    return path
 
 
 def _sidecar_flight(scene_path: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -110,10 +117,6 @@ def run(args) -> int:
     header = out / "polytopes.h"
     if not header.is_file():
         raise PolyccError(f"{header}: not found; run `polycc build SCENE -o {out}` first")
-    if args.trials < 1 or args.random_pairs < 0:
-        raise PolyccError("--trials must be >= 1 and --random-pairs >= 0")
-    if not 10 <= args.rate_hz <= 1000:
-        raise PolyccError(f"--rate-hz {args.rate_hz}: the app runs at 10..1000 Hz on a 1 kHz tick; pick one in range")
     scene_path = _scene_path(args, out)
     scene = load_scene_from_args(scene_path, args)
     t0 = time.perf_counter()
@@ -168,6 +171,8 @@ def run(args) -> int:
         "success_rate": n_ok / len(trials), "collisions": collisions, "min_clearance_m": min_clear,
     }
     (out / "sim.json").write_text(json.dumps(summary, indent=1) + "\n")
+    np.savez_compressed(out / "trajectories.npz", **{f"trial{i + 1}": t.positions for i, t in enumerate(trials)},
+                        starts=np.array([t.start for t in trials]), goals=np.array([t.goal for t in trials]))
     console.print(f"trajectories: {plot}", soft_wrap=True)
     console.print(f"summary: {len(trials)} trials, success {n_ok}/{len(trials)} ({100.0 * n_ok / len(trials):.0f}%), "
                   f"collisions: {collisions}, min clearance {min_clear:.4f} m, "

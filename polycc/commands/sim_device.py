@@ -6,7 +6,8 @@ import sys
 import time
 from pathlib import Path
 
-from polycc.commands.sim import _point, _scene_path, _sidecar_flight
+from polycc.commands.argtypes import add_point_option, number
+from polycc.commands.sim import _sidecar_flight, build_scene
 from polycc.errors import PolyccError
 
 HELP = "run the Crazyflie app (host build) in real time as a simulated Crazyflie for cflib (udp:// or serial://)"
@@ -38,24 +39,24 @@ def register(subparsers) -> None:
                    help="the splat scene; only its sidecar .json (as `polycc demo-scene` writes) is read, for the "
                         "default --start and the goal suggested for `polycc fly` (default: the scene in "
                         "OUT/manifest.json)")
-    p.add_argument("--start", type=_point, metavar="X,Y,Z",
+    add_point_option(p, "--start",
                    help="initial position, m; the vehicle starts hovering there (default: the scene sidecar's "
                         "'start', else 0,0,0)")
     p.add_argument("--dynamics", choices=("crazyflie", "integrator", "quadrotor"), default="crazyflie",
                    help="vehicle model: Crazyflie 2.1-like velocity tracking, the single integrator, or the full "
                         "rigid-body quadrotor (see `polycc sim --help`) (default: %(default)s)")
-    p.add_argument("--delay-ms", type=float, default=None, metavar="MS",
+    p.add_argument("--delay-ms", type=number(float, 0.0, 1000.0, unit="ms"), default=None, metavar="MS",
                    help="estimator delay, ms (default: the model's own, 20 for crazyflie and quadrotor)")
-    p.add_argument("--rate-hz", type=int, default=None, metavar="HZ",
+    p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=None, metavar="HZ",
                    help="initial app loop rate (param polycc.rateHz, 10..1000 Hz; a client may change it) "
                         "(default: the app's, 500)")
-    p.add_argument("--takeoff-speed", type=float, default=1.0, metavar="V",
+    p.add_argument("--takeoff-speed", type=number(float, 0.0, 10.0, lo_open=True, unit="m/s"), default=1.0, metavar="V",
                    help="speed limit, m/s, when flying a client's takeoff/land/go_to/position target "
                         "(default: %(default)s)")
-    p.add_argument("--estimate-noise", type=float, default=0.001, metavar="M",
+    p.add_argument("--estimate-noise", type=number(float, 0.0, 1.0, unit="m"), default=0.001, metavar="M",
                    help="standard deviation of white noise on the position estimate, m; 0 makes a vehicle at rest "
                         "look like a stale estimate to the app (status 4) (default: %(default)s)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
+    p.add_argument("--duration", type=number(float, 0.0, 1e7, lo_open=True, unit="s"), default=None, metavar="S",
                    help="stop after S seconds (default: run until Ctrl-C)")
     p.set_defaults(func=run)
 
@@ -83,21 +84,10 @@ def run(args) -> int:
         raise PolyccError(f"{header}: not found; run `polycc build SCENE -o {out}` first")
     if not args.udp and not args.serial:
         raise PolyccError(f"give --udp HOST:PORT (e.g. --udp {DEFAULT_UDP}) and/or --serial")
-    if args.rate_hz is not None and not 10 <= args.rate_hz <= 1000:
-        raise PolyccError(f"--rate-hz {args.rate_hz}: the app runs at 10..1000 Hz on a 1 kHz tick; pick one in range")
-    if not args.estimate_noise >= 0:
-        raise PolyccError("--estimate-noise must be >= 0 m")
-    if not args.takeoff_speed > 0:
-        raise PolyccError("--takeoff-speed must be > 0 m/s")
     udp = _udp_address(args.udp) if args.udp else None
 
     start, goal = args.start, None
-    scene = args.scene
-    if scene is None and (out / "manifest.json").is_file():
-        try:
-            scene = _scene_path(args, out)
-        except PolyccError:
-            scene = None
+    scene, _, _ = build_scene(args, out) if (out / "manifest.json").is_file() else (args.scene, None, None)
     side = _sidecar_flight(scene) if scene else None
     if side is not None:
         goal = side[1]

@@ -9,7 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.commands.scene_args import add_scene_options, load_scene_and_occupancy
+from polycc.commands.argtypes import number
+from polycc.commands.scene_args import (
+    add_scene_options,
+    check_scene_file,
+    floater_text,
+    load_scene_and_occupancy,
+    recorded_build,
+    resolve_scene_settings,
+)
 from polycc.console import console, progress_bar
 from polycc.errors import PolyccError
 from polycc.verify import VerifyReport, certify_all_levels, check_level, default_levels, read_family, read_stored
@@ -23,25 +31,28 @@ def register(sub) -> None:
                     "in OUT without using the cover code: (a) all 8 corners of every occupied voxel inside one "
                     "polytope, at the listed levels directly and at every level n = N..1 by a merge certificate; "
                     "(b) points sampled on and inside every kept ellipsoid inside some polytope; (c) Monte Carlo "
-                    "conservativeness Vol(U H^n)/Vol(V+) with a 95%% confidence interval. Tolerances count against "
-                    "the cover. Exit 0 only if (a) and (b) hold; the last line holds the figures.",
+                    "conservativeness Vol(U H^n)/Vol(V+) with a 95 %% confidence interval. Tolerances count against "
+                    "the cover. The scene options default to the ones OUT was made with (an explicit option that "
+                    "disagrees is an error). With a floater filter (--min-splats-per-voxel > 1) the cover is "
+                    "certified against the FILTERED occupancy: the splats that touch removed voxels are listed and "
+                    "left out of (b). Exit 0 only if (a) and (b) hold; the last line holds the figures.",
     )
     p.add_argument("out", metavar="OUT",
                    help="directory written by `polycc build` (its manifest.json: the stored, decoded polytopes the C "
                         "reads are checked) or by `polycc cover` (its cover.npz: the merge family)")
     p.add_argument("scene", metavar="SCENE", help="the scene file the cover was made from")
-    add_scene_options(p)
+    add_scene_options(p, from_dir=True)
     v = p.add_argument_group("verify options")
     v.add_argument("--levels", default="default", metavar="N1,N2,...|all|default",
                    help="levels n checked directly with (a), (b), (c): a comma list, 'all' (every n, slow) or "
                         "'default' = N,150,100,50,30,10,1 (default: %(default)s)")
     v.add_argument("--all-levels-certificate", action=argparse.BooleanOptionalAction, default=True,
                    help="also certify (a) at every level n = N..1 through the merge sequence (default: on)")
-    v.add_argument("--samples-per-ellipsoid", type=int, default=64, metavar="K",
+    v.add_argument("--samples-per-ellipsoid", type=number(int, 64, 100_000), default=64, metavar="K",
                    help="points sampled per ellipsoid for (b), at least 64 (default: %(default)s)")
-    v.add_argument("--min-samples", type=int, default=1_000_000, metavar="M",
+    v.add_argument("--min-samples", type=number(int, 0, 1_000_000_000), default=1_000_000, metavar="M",
                    help="at least this many points in total per level for (b) (default: %(default)s)")
-    v.add_argument("--mc-samples", type=int, default=200_000, metavar="S",
+    v.add_argument("--mc-samples", type=number(int, 1000, 100_000_000), default=200_000, metavar="S",
                    help="Monte Carlo samples per level for (c) (default: %(default)s)")
     v.add_argument("--seed", type=int, default=0, help="random seed for (b) and (c) (default: %(default)s)")
     v.add_argument("--report", metavar="FILE.json", help="also write the figures as JSON (default: none)")
@@ -64,10 +75,13 @@ def _levels(text: str, N: int) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.samples_per_ellipsoid < 64:
-        raise PolyccError(f"--samples-per-ellipsoid {args.samples_per_ellipsoid}: must be at least 64")
     path = Path(args.out)
+    if not path.exists():
+        raise PolyccError(f"{path}: no such folder or file; give the output of `polycc build` or `polycc cover`")
     stored = (path / "manifest.json").exists() if path.is_dir() else path.suffix == ".json"
+    recorded, rec_scene = recorded_build(path)
+    check_scene_file(args.scene, rec_scene, str(path))
+    resolve_scene_settings(args, recorded, str(path))
     scene, grid = load_scene_and_occupancy(args.scene, args)
     try:
         fam = read_stored(path, grid.voxel_size, grid.origin) if stored else read_family(path)
@@ -93,8 +107,23 @@ def run(args: argparse.Namespace) -> int:
             fails = certify_all_levels(fam, idx, progress=update)
         rep.certificate_levels = N
         rep.certificate_failures = [{"n": n, "uncovered_voxels": u} for n, u in fails]
-    rng = np.random.default_rng(args.seed)
+    st = args.scene_settings
     ell = scene.ellipsoids
+    loss = grid.floater_loss
+    if st.min_splats_per_voxel > 1:
+        console.print(f"certifying against the FILTERED occupancy (--min-splats-per-voxel {st.min_splats_per_voxel}, "
+                      f"g = {grid.voxel_size:g} m): {floater_text(grid.stats)}; those splats are left out of (b)",
+                      soft_wrap=True)
+        if loss is not None and len(loss["splats"]):
+            keep = np.ones(len(ell), bool)
+            keep[loss["splats"]] = False
+            ell = ell.subset(keep)
+    else:
+        console.print(f"certifying against the exact occupancy of {args.scene} (g = {grid.voxel_size:g} m, "
+                      "no floater filter): every kept splat ellipsoid must be inside the cover", soft_wrap=True)
+    rep.occupancy = ("filtered" if st.min_splats_per_voxel > 1 else "exact")
+    rep.floater_filter = grid.stats.get("floater_filter")
+    rng = np.random.default_rng(args.seed)
     centers, axes = ell.centers, ell.axes()
     with progress_bar("(a)(b)(c) direct checks", len(levels)) as update:
         for k, n in enumerate(levels):
@@ -123,7 +152,10 @@ def run(args: argparse.Namespace) -> int:
     unv = sum(l.voxels_uncovered for l in rep.levels) + sum(max(f["uncovered_voxels"], 1) for f in rep.certificate_failures)
     unp = sum(l.points_uncovered for l in rep.levels)
     cons = " ".join(f"n={l.n}:{l.conservativeness:.3f}+/-{l.conservativeness_ci:.3f}" for l in rep.levels)
-    print(f"verify: {'PASS' if rep.ok else 'FAIL'} | levels checked directly {len(rep.levels)}, by certificate "
+    occ_text = ("exact occupancy" if rep.occupancy == "exact" else
+                f"FILTERED occupancy (M = {st.min_splats_per_voxel}; "
+                f"{(rep.floater_filter or {}).get('splats_not_fully_covered', 0):,} splats not covered)")
+    print(f"verify: {'PASS' if rep.ok else 'FAIL'} against the {occ_text} | levels checked directly {len(rep.levels)}, by certificate "
           f"{rep.certificate_levels} | voxels checked {vox:,} | points sampled {pts:,} | uncovered voxels {unv:,} "
           f"points {unp:,} | conservativeness (95% CI) {cons}")
     return 0 if rep.ok else 1
