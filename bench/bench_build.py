@@ -1,11 +1,11 @@
-"""Benchmark of `polycc build` (budgets, reduction, quantization), issue "polycc build".
+"""Benchmark of `polycc build` (budgets, reduction, quantization).
 
 For the arena of real captures and the demo arena, at 8, 16, 32 and 64 KiB: n, half-planes,
 bytes per half-plane, conservativeness and modelled on-board microseconds, next to a
 "paper-faithful" storage at the same budget (qhull's triangle facets unmerged, float32
 n and d per plane, no reduction: the largest n whose planes fit), first on our merge family,
 then on the paper's own cover (its clusters only, its merge cost): "paper pipeline". Wasted
-volume is Vol(union H \\ V+), estimated directly (polycc.union_volume.union_waste), with the
+volume is Vol(union H \\ V+), estimated directly (polycc.geometry.union_volume.union_waste), with the
 same samples for every column. Also times `polycc build` end to end on the 1.5M-splat room.
 
     python bench/bench_build.py [--quick]
@@ -30,9 +30,9 @@ PLANE_BYTES_PAPER = 16
 
 
 def arena_ply(name: str) -> Path:
-    from polycc.arenas import capture_arena, tiled_room
-    from polycc.demo_scene import make_demo_arena
-    from polycc.ply_write import write_gaussian_ply
+    from polycc.demo.arenas import capture_arena, tiled_room
+    from polycc.demo.arena import make_demo_arena
+    from polycc.scene.writers import write_gaussian_ply
 
     path = CACHE / ("tiled_room_1500000.ply" if name == "tiled_room" else f"{name}.ply")  # as bench_occupancy
     if not path.exists():
@@ -47,7 +47,7 @@ def arena_ply(name: str) -> Path:
 
 def paper_faithful(family, budget_bytes: int, occ_vol: float, samples: int):
     """Largest n whose unmerged triangle facets (float32 n, d) fit; its wasted volume."""
-    from polycc.union_volume import in_voxels, union_waste
+    from polycc.geometry.union_volume import in_voxels, union_waste
 
     tri = np.array([len(ConvexHull(family.vertices[family.vertex_ptr[k]:family.vertex_ptr[k + 1]]).simplices)
                     for k in range(len(family.plane_ptr) - 1)])
@@ -78,11 +78,11 @@ def paper_faithful(family, budget_bytes: int, occ_vol: float, samples: int):
 
 
 def table_for(name: str, samples: int) -> list[dict]:
-    from polycc import cycle_model
-    from polycc.budget import Budget, select
-    from polycc.cover import build_cover
-    from polycc.occupancy import voxelize
-    from polycc.scene import load_scene
+    from polycc.budget import cycle_model
+    from polycc.budget.select import Budget, select
+    from polycc.cover.build import build_cover
+    from polycc.occupancy.exact import voxelize
+    from polycc.scene.load import load_scene
 
     scene = load_scene(arena_ply(name))
     occ = voxelize(scene.ellipsoids, 0.05)

@@ -1,4 +1,4 @@
-"""Benchmark: PolyMerge cover (issue: PolyMerge cover, set cover and iterative merging).
+"""Benchmark: PolyMerge cover (set cover and iterative merging).
 
 1. Speed: the 1.5M-Gaussian tiled room at g = 5 cm, b = 1, voxels -> full merge family
    (target <= 60 s on the 2-core machine), time per stage, default merge cost.
@@ -31,8 +31,8 @@ G = 0.05
 
 
 def scenes(quick: bool) -> dict:
-    from polycc.arenas import capture_arena, load_capture
-    from polycc.demo_scene import make_demo_arena
+    from polycc.demo.arenas import capture_arena, load_capture
+    from polycc.demo.arena import make_demo_arena
 
     out = {"demo arena": make_demo_arena(0)}
     if not quick:
@@ -42,7 +42,7 @@ def scenes(quick: bool) -> dict:
 
 
 def conservativeness(fam, n: int, samples: int, rng) -> tuple[float, float]:
-    from polycc.verify import FamilyArrays, PolytopeSet, union_volume_mc
+    from polycc.verify.certify import FamilyArrays, PolytopeSet, union_volume_mc
 
     ps = PolytopeSet(FamilyArrays.from_family(fam), fam.active_nodes(n))
     v, ci = union_volume_mc(ps, samples, rng)
@@ -56,9 +56,9 @@ def conservativeness(fam, n: int, samples: int, rng) -> tuple[float, float]:
 def bench_speed(quick: bool) -> dict:
     from bench_occupancy import room_ply
 
-    from polycc.cover import DEFAULT_MERGE_COST, build_cover
-    from polycc.occupancy import voxelize
-    from polycc.scene import load_scene
+    from polycc.cover.build import DEFAULT_MERGE_COST, build_cover
+    from polycc.occupancy.exact import voxelize
+    from polycc.scene.load import load_scene
 
     target = 300_000 if quick else 1_500_000
     ply = room_ply(target)
@@ -93,8 +93,8 @@ def bench_speed(quick: bool) -> dict:
 
 
 def bench_quality(scene_sets: dict, samples: int) -> tuple[dict, dict]:
-    from polycc.cover import build_cover
-    from polycc.occupancy import voxelize
+    from polycc.cover.build import build_cover
+    from polycc.occupancy.exact import voxelize
 
     results, grids = {}, {}
     rows = []
@@ -114,7 +114,7 @@ def bench_quality(scene_sets: dict, samples: int) -> tuple[dict, dict]:
                     c, ci = conservativeness(fam, n, samples, rng)
                     lv[n] = {"conservativeness": c, "ci95": ci, "halfplanes": fam.halfplane_count(n)}
             per_cost[cost] = {"N": fam.n_max, "time_s": dt, "levels": lv, "family": fam}
-        from polycc.cover import selection_score
+        from polycc.cover.build import selection_score
 
         scores = {c: selection_score(r["family"]) for c, r in per_cost.items()}
         best = "delta" if scores["delta"] < scores["paper"] else "paper"
@@ -165,7 +165,7 @@ def hull_set(hulls, g):
     """verify.PolytopeSet-compatible arrays for a list of vertex clouds (via qhull)."""
     from scipy.spatial import ConvexHull
 
-    from polycc.verify import FamilyArrays, PolytopeSet
+    from polycc.verify.certify import FamilyArrays, PolytopeSet
 
     planes, verts, pp, vp = [], [], [0], [0]
     for v in hulls:
@@ -190,7 +190,7 @@ def coverage_fraction(ps, grid, samples: int, rng) -> float:
 def bench_coacd(grids: dict, quality: dict, samples: int, names: list[str]) -> dict:
     import coacd
 
-    from polycc.verify import FamilyArrays, PolytopeSet, union_volume_mc
+    from polycc.verify.certify import FamilyArrays, PolytopeSet, union_volume_mc
 
     coacd.set_log_level("error")
     out, rows = {}, []

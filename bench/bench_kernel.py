@@ -52,11 +52,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from host_sim import kernel_arm  # noqa: E402
-from host_sim.kernel_ffi import OUT_DTYPE, HostScene, step_batch  # noqa: E402
-from polycc import barrier as B  # noqa: E402
-from polycc.scene_layout import (SCENE_FORMAT, PackedScene, hull_halfplanes, layout_bytes, pack_scene,  # noqa: E402
-                                 pad_to_planes, random_hull_polytopes)
+from polycc.sim import kernel_arm  # noqa: E402
+from polycc.sim.kernel_ffi import OUT_DTYPE, HostScene, step_batch  # noqa: E402
+from polycc.onboard import barrier as B  # noqa: E402
+from polycc.onboard.layout import SCENE_FORMAT, PackedScene, pack_scene  # noqa: E402
+from polycc.geometry.halfplanes import hull_halfplanes  # noqa: E402
+from polycc.testing.synthetic import pad_to_planes, random_hull_polytopes  # noqa: E402
 
 MHZ = 168.0
 FLASH_BASE, FLASH_SIZE = 0x08000000, 0x00100000

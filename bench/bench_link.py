@@ -1,4 +1,4 @@
-"""Benchmark: the cflib link to the simulated Crazyflie, over UDP and over a serial pty (issue 7).
+"""Benchmark: the cflib link to the simulated Crazyflie, over UDP and over a serial pty.
 
 Targets: connection time to fully connected (TOCs downloaded and every param read) <= 1 s;
 100 Hz logging of 6 floats for 60 s with zero lost log packets. The device runs in its own
@@ -35,8 +35,8 @@ CONNECT_TARGET_S = 1.0
 
 def serve(kind: str) -> None:
     """Child process: serve a device with 6 float log variables until stdin closes."""
-    from host_sim.crtp_device import CrtpDevice, DeviceModel, LogEntry, ParamEntry
-    from host_sim.device_server import SerialDeviceServer, UdpDeviceServer
+    from polycc.sim.crtp_device import CrtpDevice, DeviceModel, LogEntry, ParamEntry
+    from polycc.sim.device_server import SerialDeviceServer, UdpDeviceServer
 
     goal = [0.0]
     logs = [LogEntry("stateEstimate", n, "float", lambda i=i: math.sin(time.monotonic() + i))

@@ -1,4 +1,4 @@
-"""Benchmark: load + exact occupancy of the 1.5M-Gaussian tiled room (issue: Foundation).
+"""Benchmark: load + exact occupancy of the 1.5M-Gaussian tiled room.
 
 Targets on the 2-core machine: g = 5 cm <= 20 s, g = 2 cm <= 60 s, peak RSS <= 4 GB.
 Each configuration runs in a fresh subprocess so its peak RSS is its own. The naive
@@ -24,8 +24,8 @@ from common import CACHE, SCENES, peak_rss_mb, print_table, write_json  # noqa: 
 
 def room_ply(target: int) -> str:
     """Write (once, cached) the tiled room as a graphdeco 3DGS .ply and return its path."""
-    from polycc.arenas import tiled_room
-    from polycc.ply_write import write_gaussian_ply
+    from polycc.demo.arenas import tiled_room
+    from polycc.scene.writers import write_gaussian_ply
 
     path = CACHE / f"tiled_room_{target}.ply"
     if not path.exists():
@@ -39,7 +39,7 @@ def room_ply(target: int) -> str:
 
 def aabb_voxel_count(ell, g: float) -> int:
     """Naive baseline: number of distinct voxels in the union of the splats' AABBs."""
-    from polycc.occupancy import aabb_index_range, pack_keys
+    from polycc.occupancy.exact import aabb_index_range, pack_keys
 
     imin, imax = aabb_index_range(ell, g, np.zeros(3))
     keys = []
@@ -58,8 +58,8 @@ def aabb_voxel_count(ell, g: float) -> int:
 
 def run_one(ply: str, g: float, baseline: bool) -> dict:
     """One configuration, in this process: load, voxelize, optional AABB baseline."""
-    from polycc.occupancy import voxelize
-    from polycc.scene import load_scene
+    from polycc.occupancy.exact import voxelize
+    from polycc.scene.load import load_scene
 
     t0 = time.perf_counter()
     scene = load_scene(ply)

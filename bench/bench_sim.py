@@ -47,8 +47,8 @@ GAP_VMAX = (0.25, 0.5, 1.0, 1.5, 2.0)
 
 @lru_cache(maxsize=2)
 def arena(name: str):
-    from polycc.arenas import capture_arena
-    from polycc.demo_scene import make_demo_arena
+    from polycc.demo.arenas import capture_arena
+    from polycc.demo.arena import make_demo_arena
 
     if name == "demo":
         return make_demo_arena(0)
@@ -57,9 +57,9 @@ def arena(name: str):
 
 @lru_cache(maxsize=2)
 def family(name: str):
-    from polycc.cover import build_cover
-    from polycc.cover_family import CoverFamily
-    from polycc.occupancy import voxelize
+    from polycc.cover.build import build_cover
+    from polycc.cover.family import CoverFamily
+    from polycc.occupancy.exact import voxelize
 
     path = CACHE / f"sim_cover_{name}_g{VOXEL}.npz"
     if path.exists():
@@ -72,7 +72,7 @@ def family(name: str):
 
 def write_header(name: str, n: int) -> Path:
     """polytopes.h + manifest.json of H^n (rewritten every run, so they follow the code generator)."""
-    from polycc.codegen import write_outputs
+    from polycc.codegen.header import write_outputs
 
     d = CACHE / "sim_headers" / f"{name}_n{n}"
     fam = family(name)
@@ -81,7 +81,7 @@ def write_header(name: str, n: int) -> Path:
 
 
 def pairs_for(header: Path, name: str, n_pairs: int, min_distance: float, seed: int):
-    from host_sim.sitl import FlightConfig, Simulator, random_pairs, sampling_box
+    from polycc.sim.sitl import FlightConfig, Simulator, random_pairs, sampling_box
 
     sim = Simulator(header)  # the most conservative cover (smallest n)
     lo, hi = sampling_box(arena(name))
@@ -90,7 +90,7 @@ def pairs_for(header: Path, name: str, n_pairs: int, min_distance: float, seed: 
 
 def fly_batch(job: dict) -> dict:
     """One (arena, n, dynamics, vmax, radius) cell over all pairs; runs in a worker process."""
-    from host_sim.sitl import FlightConfig, Simulator
+    from polycc.sim.sitl import FlightConfig, Simulator
 
     t0 = time.perf_counter()
     sim = Simulator(job["header"], arena(job["arena"]), brake=job.get("brake", True))
@@ -129,7 +129,7 @@ def main() -> int:
     # covers and headers are built here, once, before the workers start
     headers = {(a, n): str(write_header(a, n)) for a in arenas for n in ns}
     pairs = {a: pairs_for(headers[a, ns[0]], a, n_pairs, args.min_distance, args.seed) for a in arenas}
-    from host_sim.app_ffi import AppSim
+    from polycc.sim.app_ffi import AppSim
 
     for h in headers.values():  # compile every app variant once, before the workers need them
         AppSim(h)

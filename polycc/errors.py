@@ -9,9 +9,3 @@ class PolyccError(Exception):
     """An error caused by the user's input or environment (exit code 2)."""
 
     exit_code = 2
-
-
-class CertificationError(PolyccError):
-    """A certification check failed: the cover or barrier is not safe (exit code 1)."""
-
-    exit_code = 1

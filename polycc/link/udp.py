@@ -7,9 +7,6 @@ port 15, channel 3) to ports 19850-19859 and treats any reply as "a Crazyflie is
 
 from __future__ import annotations
 
-import socket
-from urllib.parse import urlparse
-
 from polycc.errors import PolyccError
 from polycc.link.crtp import CrtpPacket
 
@@ -31,41 +28,26 @@ def decode_datagram(data: bytes) -> CrtpPacket:
     return CrtpPacket.decode(data)
 
 
+def parse_host_port(text: str, default_port: int | None = None, what: str = "--udp") -> tuple[str, int]:
+    """``HOST:PORT`` -> ``(host, port)``, PORT in 0..65535 (0: pick a free one when binding); without
+    ``:PORT``, ``default_port`` (an error if None)."""
+    host, sep, port = text.rpartition(":")
+    if not sep and default_port is not None:
+        host, port = text, str(default_port)
+    try:
+        n = int(port)
+    except ValueError:
+        n = -1
+    if not host or not 0 <= n <= 65535:
+        raise PolyccError(f"{what} {text!r}: expected HOST:PORT with PORT in 0-65535, e.g. 127.0.0.1:{DEFAULT_PORT}")
+    return host, n
+
+
 def parse_udp_uri(uri: str) -> tuple[str, int]:
     """``udp://host:port`` -> ``(host, port)``; the port defaults to 19850."""
-    u = urlparse(uri)
-    if u.scheme != "udp" or not u.hostname:
+    if not uri.startswith("udp://") or len(uri) <= len("udp://"):
         raise PolyccError(f"{uri!r} is not a UDP link URI; use udp://HOST:PORT, e.g. udp://127.0.0.1:{DEFAULT_PORT}")
-    try:
-        port = u.port or DEFAULT_PORT
-    except ValueError:
-        raise PolyccError(f"{uri!r} has an invalid port; use udp://HOST:PORT with PORT in 1-65535") from None
-    return u.hostname, port
-
-
-class UdpCrtpClient:
-    """A minimal host-side UDP link (for tests and tools that do not use cflib)."""
-
-    def __init__(self, host: str, port: int) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.connect((host, port))
-
-    def send(self, pk: CrtpPacket) -> None:
-        self.sock.send(encode_datagram(pk))
-
-    def receive(self, timeout_s: float = 1.0) -> CrtpPacket | None:
-        """Next packet, or ``None`` after ``timeout_s`` seconds."""
-        self.sock.settimeout(timeout_s)
-        try:
-            return decode_datagram(self.sock.recv(64))
-        except (socket.timeout, ConnectionRefusedError):
-            return None
-
-    def close(self) -> None:
-        self.sock.close()
-
-    def __enter__(self) -> UdpCrtpClient:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+    host, port = parse_host_port(uri[len("udp://"):].rstrip("/"), DEFAULT_PORT, "URI")
+    if port == 0:
+        raise PolyccError(f"{uri!r} has an invalid port; use udp://HOST:PORT with PORT in 1-65535")
+    return host, port

@@ -1,1 +1,0 @@
-"""Host-side simulation: cffi builds of the firmware kernel sources and helpers."""

@@ -1,0 +1,94 @@
+"""Cortex-M4 cost model of one barrier evaluation (``polycc_step``), for budgets and summaries.
+
+    cycles = FIXED + PER_CLUSTER * clusters + PER_ENTERED * polytopes entered
+             + PER_POLY * polytopes evaluated + PER_PLANE * their half-planes
+
+Coefficients are fitted to the upper end of the cycle range of the worst-case rows of
+``bench/bench_kernel.py`` for scene format 3 (quantized records, shared normal table), which
+runs the ARM build of ``polycc_kernel.c`` instruction by instruction (unicorn + capstone,
+documented Cortex-M4 cycle model), and rounded so that the model is at or above every row
+(0-10 % above): e.g. 150 polytopes / 1999 half-planes measured 176.7k cycles (1051.6 us),
+model 180.9k; 150 / 3720: 297.6k (1771.6 us), model 301.4k; 150 / 9734 (64 KiB filled):
+707.6k (4212 us), model 722.3k.  Format 3 costs about 70 cycles per evaluated half-plane
+(index load, table address, int->float of the offset) against ~28 in format 2.
+
+* worst case: every polytope entered and evaluated;
+* typical: the float32 reference (:func:`polycc.onboard.barrier.barrier` with ``stats``) counts the
+  polytopes the kernel enters and evaluates at positions sampled in the free space of the
+  scene's bounding box, so the culling is the kernel's own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from polycc.onboard.layout import PackedScene, n_clusters_for
+
+CPU_HZ = 168e6
+DEFAULT_CPU_SHARE = 0.2
+FIXED_CYCLES = 2500.0
+PER_CLUSTER_CYCLES = 60.0
+PER_ENTERED_CYCLES = 60.0
+PER_POLY_CYCLES = 190.0
+PER_PLANE_CYCLES = 70.0
+
+
+def cycles(n_clusters: float, entered: float, evaluated: float, planes: float) -> float:
+    return (FIXED_CYCLES + PER_CLUSTER_CYCLES * n_clusters + PER_ENTERED_CYCLES * entered
+            + PER_POLY_CYCLES * evaluated + PER_PLANE_CYCLES * planes)
+
+
+def cycle_budget(rate_hz: float, cpu_share: float = DEFAULT_CPU_SHARE) -> float:
+    """Cycles available per evaluation: ``cpu_share`` of the 168 MHz CPU at ``rate_hz``."""
+    return cpu_share * CPU_HZ / rate_hz
+
+
+def plane_budget(avail_cycles: float, n_polys: int) -> int:
+    """Half-planes whose worst-case evaluation with ``n_polys`` polytopes (all entered and
+    evaluated) fits in ``avail_cycles``."""
+    avail = avail_cycles - cycles(n_clusters_for(n_polys), n_polys, n_polys, 0)
+    return max(0, int(avail // PER_PLANE_CYCLES))
+
+
+def us(cyc) -> np.ndarray:
+    """Cycles -> microseconds at 168 MHz, rounded up (what ``usecTimestamp`` would show)."""
+    return np.ceil(np.asarray(cyc, np.float64) / CPU_HZ * 1e6).astype(np.int64)
+
+
+def worst_cycles(packed: PackedScene) -> float:
+    """Every cluster, polytope and half-plane evaluated."""
+    return cycles(packed.n_clusters, packed.n_polys, packed.n_polys, packed.n_planes)
+
+
+def state_cycles(packed: PackedScene, params, X: np.ndarray) -> np.ndarray:
+    """Modelled cycles at each state of X (n, 3), metres: the polytopes the kernel enters and
+    evaluates there, counted by the float32 reference (its culling is the kernel's own)."""
+    from polycc.onboard.barrier import barrier
+
+    X = np.asarray(X, np.float32).reshape(-1, 3)
+    if len(X) == 0:
+        return np.zeros(0)
+    stats: dict = {}
+    barrier(packed, params, X, stats=stats)
+    ev = np.asarray(stats["evaluated"], np.float64)
+    mean_planes = packed.n_planes / max(packed.n_polys, 1)
+    return cycles(packed.n_clusters, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
+
+
+def estimate_us(packed: PackedScene, kappa: float = 100.0, samples: int = 400, seed: int = 0) -> dict:
+    """Modelled microseconds per evaluation at 168 MHz: typical (median over free positions
+    sampled in the polytopes' bounding box) and worst case."""
+    from polycc.onboard.barrier import Params, barrier
+
+    P = packed.polys
+    c = np.stack([P["cx"], P["cy"], P["cz"]], axis=1).astype(np.float64)
+    r = P["r_out"].astype(np.float64)
+    lo, hi = (c - r[:, None]).min(0), (c + r[:, None]).max(0)
+    x = np.random.default_rng(seed).uniform(lo, hi, (samples * 4, 3)).astype(np.float32)
+    params = Params(kappa=kappa, radius=0.0)
+    psi, _, _ = barrier(packed, params, x)
+    free = psi > 0
+    if not free.any():
+        free[:] = True
+    typ = state_cycles(packed, params, x[free])
+    return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6), "worst_us": float(worst_cycles(packed) / CPU_HZ * 1e6)}

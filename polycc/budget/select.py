@@ -1,0 +1,351 @@
+"""Budgets: choose the cover H^n, reduce and quantize it so it fits flash and compute limits.
+
+Pipeline for one candidate (n, T), T the cap of the shared normal table (None = uncapped):
+
+1. materialise H^n from the merge family;
+2. if its half-planes exceed the capacity, drop planes across all polytopes, cheapest
+   added volume first (:mod:`polycc.budget.reduce`);
+3. pack into the kernel's format 3 (:func:`polycc.onboard.layout.pack_scene`): normals snapped
+   to the shared table (capped at T by spherical k-means), offsets rounded outward over the
+   exact hull vertices of each polytope of H^n, int16 in power-of-two quanta;
+4. measure conservativeness Vol(union)/Vol(V+) = 1 + Vol(union \\ V+)/Vol(V+) of the decoded
+   polytopes, the wasted volume by Monte Carlo (:func:`polycc.geometry.union_volume.union_waste`).
+
+Flash bytes are exact (:func:`polycc.onboard.layout.layout_bytes`):
+48 + 4 planes + 16 n + 32 clusters + 12 normals.  The half-plane capacity of (n, T) is
+(flash - 48 - 16 n - 32 C(n) - 12 T) // 4, with T = the number of distinct (snapped) normals
+of H^n before reduction for the uncapped table (reduction only removes planes, so the stored
+table is never larger).  A small T buys half-planes at 12 B per dropped normal but snaps
+every plane to a coarser direction set: which one wins is measured, candidate by candidate.
+
+Selection: the least conservative candidate among, for each T, the largest n that fits
+without reduction, a few larger n that fit only after reduction and a few smaller n; among
+candidates within the Monte Carlo 95 % half-width of the least conservative one, the fewest
+polytopes (fastest on board).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from polycc.cover.family import CoverFamily
+from polycc.errors import PolyccError
+from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
+from polycc.geometry.halfplanes import polytope_vertices
+from polycc.onboard.layout import DEFAULT_NORMAL_GRID, MAX_POLY_PLANES, PLANE_BYTES, PackedScene, layout_bytes, n_clusters_for, pack_scene
+from polycc.geometry.union_volume import in_voxels, union_waste
+
+REDUCTION_FACTORS = (1.5, 2.0, 3.0, 4.0, 6.0)  # candidate n as multiples of the no-reduction n
+CURVE_FACTORS = (0.5, 0.25, 0.1)  # smaller n also evaluated, for the trade-off curve
+NORMAL_CAPS = (None, 1024, 256, 64)  # normal-table caps T tried (None = one entry per distinct normal)
+
+
+@dataclass
+class Budget:
+    """flash_bytes: --flash-kb * 1024; max_halfplanes: --max-halfplanes (None = no limit);
+    rate_cycles: Cortex-M4 cycles per evaluation allowed by --rate-hz and --cpu-share
+    (None = no limit), turned into a half-plane cap for each n by the worst-case cycle model."""
+
+    flash_bytes: int
+    max_halfplanes: int | None = None
+    rate_cycles: float | None = None
+
+    def caps(self, n: int, n_normals: int) -> dict[str, int]:
+        """Half-plane capacity for n polytopes and a normal table of n_normals entries, per budget."""
+        caps = {"flash": (self.flash_bytes - data_bytes(n, 0, n_normals)) // PLANE_BYTES}
+        if self.max_halfplanes is not None:
+            caps["halfplanes"] = int(self.max_halfplanes)
+        if self.rate_cycles is not None:
+            from polycc.budget.cycle_model import plane_budget
+
+            caps["rate"] = plane_budget(self.rate_cycles, n)
+        return caps
+
+    def capacity(self, n: int, n_normals: int) -> int:
+        return min(self.caps(n, n_normals).values())
+
+
+def data_bytes(n_polys: int, n_planes: int, n_normals: int) -> int:
+    """Exact flash bytes of a packed scene with these counts (clusters follow from n_polys)."""
+    return layout_bytes(n_polys, n_planes, n_clusters_for(n_polys), n_normals)
+
+
+def normal_keys(planes: np.ndarray, grid: int = DEFAULT_NORMAL_GRID) -> np.ndarray:
+    """Integer id per half-plane row of the shared-table entry pack_scene snaps it to
+    (direction m / |m|, m = round(grid n) / gcd), vectorised."""
+    m = np.rint(np.asarray(planes)[:, :3] * grid).astype(np.int64)
+    g = np.gcd.reduce(np.abs(m), axis=1)
+    g[g == 0] = 1
+    m //= g[:, None]
+    _, ids = np.unique(m, axis=0, return_inverse=True)
+    return ids.ravel()
+
+
+@dataclass
+class Candidate:
+    n: int
+    max_normals: int | None  # table cap T passed to pack_scene (None = uncapped)
+    packed: PackedScene
+    planes_before: int  # half-planes of H^n before reduction
+    normals_before: int  # distinct snapped normals of H^n before reduction
+    dropped: int  # half-planes removed by the outward reduction
+    merged: int  # half-planes of H^n stored as one because their snapped normals coincide
+    union_volume: float
+    union_ci: float
+    conservativeness: float
+    conservativeness_ci: float
+    caps: dict = field(default_factory=dict)
+
+    @property
+    def n_planes(self) -> int:
+        return self.packed.n_planes
+
+    @property
+    def n_normals(self) -> int:
+        return self.packed.n_normals
+
+    @property
+    def bytes(self) -> int:
+        return self.packed.flash_bytes()
+
+
+def plane_counts(family: CoverFamily, per: np.ndarray | None = None) -> np.ndarray:
+    """counts[n] = total half-planes of H^n for n = 1..N (index 0 unused), from the merge log.
+    ``per`` (one count per node) replaces the family's plane counts (e.g. after merging the
+    planes whose snapped normals coincide)."""
+    N = family.n_max
+    per = np.diff(family.plane_ptr).astype(np.int64) if per is None else np.asarray(per, np.int64)
+    total = np.empty(N + 1, np.int64)
+    total[N] = per[:N].sum()
+    if N > 1:
+        a, b = family.merges[:, 0], family.merges[:, 1]
+        new = np.arange(N, N + len(family.merges))
+        delta = per[new] - per[a] - per[b]
+        total[N - 1 : 0 : -1] = total[N] + np.cumsum(delta)
+    total[0] = 0
+    return total
+
+
+class _Normals:
+    """Distinct snapped normals of H^n, for any n, from one vectorised key per family plane."""
+
+    def __init__(self, family: CoverFamily):
+        self.family = family
+        self.keys = normal_keys(family.planes) if len(family.planes) else np.zeros(0, np.int64)
+        self.total = int(self.keys.max()) + 1 if self.keys.size else 0
+        self._cache: dict[int, int] = {}
+        # planes per node once rows with the same snapped normal are merged (as pack_scene does)
+        node = np.repeat(np.arange(len(family.plane_ptr) - 1), np.diff(family.plane_ptr))
+        pairs = np.unique(np.c_[node, self.keys], axis=0) if self.keys.size else np.zeros((0, 2), np.int64)
+        self.merged_per_node = np.bincount(pairs[:, 0], minlength=len(family.plane_ptr) - 1)
+
+    def count(self, n: int) -> int:
+        if n not in self._cache:
+            f = self.family
+            k = f.active_nodes(n)
+            idx = np.concatenate([np.arange(f.plane_ptr[i], f.plane_ptr[i + 1]) for i in k])
+            self._cache[n] = int(np.unique(self.keys[idx]).size)
+        return self._cache[n]
+
+
+def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget, normals_before: int,
+            occupied_volume: float, mc_samples: int, seed: int = 0, caches: dict | None = None) -> Candidate | None:
+    """Reduce, pack (format 3) and measure H^n with table cap T; None if it cannot fit.
+    ``caches`` (one dict per selection) memoises drop costs and polytope records across candidates."""
+    caches = {} if caches is None else caches
+    polys = family.materialise(n)
+    before = sum(len(p.halfplanes) for p in polys)
+    t_eff = normals_before if max_normals is None else min(max_normals, normals_before)
+    caps = budget.caps(n, t_eff)
+    cap = min(caps.values())
+    verts = [p.vertices for p in polys]
+    # Merge the planes that pack_scene would store as one (same snapped normal) before reducing,
+    # so that the capacity is spent on planes that are really stored.
+    rows = []
+    for p in polys:
+        _, first = np.unique(normal_keys(p.halfplanes), return_index=True)
+        rows.append(p.halfplanes[np.sort(first)])
+    for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
+        if cap < MIN_PLANES * n:
+            return None
+        red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES,
+                            cost_cache=caches.setdefault("drop_costs", {}))
+        if red is None:
+            return None
+        packed = pack_scene(red[0], verts, max_normals=max_normals, record_cache=caches.setdefault("records", {}))
+        over_planes = packed.n_planes - min(caps.values())
+        over_bytes = packed.flash_bytes() - budget.flash_bytes
+        dropped = sum(len(h) for h in rows) - sum(len(h) for h in red[0])
+        if over_planes <= 0 and over_bytes <= 0:
+            break
+        cap -= max(over_planes, -(-over_bytes // PLANE_BYTES), 1)
+    else:
+        return None
+    # The byte model is exact and the table can only shrink (reduction removes planes, merging
+    # removes duplicates, unused entries are dropped).
+    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals), "byte model out of date"
+    # (+6: pack_scene may add the axis normals to close an over-elongated polytope)
+    assert packed.n_normals <= t_eff + 6 or max_normals is not None and packed.n_normals <= max_normals
+    assert packed.flash_bytes() <= budget.flash_bytes
+    order = packed.order if packed.order is not None else np.arange(packed.n_polys)
+    stored = [h.astype(np.float64) for h in packed.polytopes()]
+    boxes = []
+    for h, p in zip(stored, [polys[i] for i in order]):
+        v = polytope_vertices(h, p.vertices.mean(axis=0), MIN_GAMMA)
+        if v is None:  # cannot happen for a packed (bounded) polytope; be loud if it does
+            raise PolyccError(f"internal: stored polytope of node {p.node} is unbounded")
+        boxes.append((v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9))
+    if "occupied" not in caches:
+        caches["occupied"] = in_voxels(family.grid_indices, family.origin, family.voxel_size)
+    # V+ lies inside the union (certified), so Vol(union) = Vol(V+) + waste; the waste is
+    # estimated directly, which is far less noisy than Vol(union) - Vol(V+)
+    _, _, waste, wci = union_waste(stored, boxes, caches["occupied"], samples=mc_samples, seed=seed)
+    return Candidate(n, max_normals, packed, before, normals_before, dropped, before - dropped - packed.n_planes,
+                     occupied_volume + waste, wci, 1.0 + waste / occupied_volume, wci / occupied_volume, caps)
+
+
+def _largest(lo: int, hi: int, ok: Callable[[int], bool]) -> int:
+    """Largest n in [lo, hi] with ok(n) by binary search (ok is taken as monotone), lo - 1 if none."""
+    if hi < lo or not ok(lo):
+        return lo - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if ok(mid):
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+def candidate_ns(family: CoverFamily, budget: Budget, table: Callable[[int], int],
+                 counts: np.ndarray | None = None, curve: bool = True) -> tuple[list[int], int]:
+    """(n values worth evaluating, n0 = largest n that fits with no reduction, or 0), for a
+    normal table of table(n) entries.  Plane counts and capacities are nearly monotone in n, so
+    n0 and the largest n that can fit after reduction are found by binary search.  ``curve``
+    adds the smaller n of CURVE_FACTORS (for the trade-off curve)."""
+    N = family.n_max
+    counts = plane_counts(family) if counts is None else counts
+    cap = lambda n: budget.capacity(n, table(n))  # noqa: E731
+    n0 = max(0, _largest(1, N, lambda n: int(counts[n]) <= cap(n)))
+    if n0 == N:
+        return sorted({N} | ({max(1, int(N * f)) for f in CURVE_FACTORS} if curve else set())), n0
+    n_hi = max(0, _largest(1, N, lambda n: cap(n) >= MIN_PLANES * n))
+    cands = {n0} if n0 else set()
+    cands |= {max(1, int(n0 * f)) for f in CURVE_FACTORS if n0 and curve}
+    base = max(n0, 1)
+    for f in REDUCTION_FACTORS:
+        n = min(N, n_hi, int(math.ceil(base * f)))
+        if n > n0:
+            cands.add(n)
+    if not cands and n_hi:
+        cands.add(min(n_hi, N))
+    return sorted(cands), n0
+
+
+def select(
+    family: CoverFamily,
+    budget: Budget,
+    mc_samples: int = 100_000,
+    progress: Callable[[int, int], None] | None = None,
+    normal_caps: tuple = NORMAL_CAPS,
+) -> tuple[Candidate, list[Candidate], str]:
+    """Best candidate, every evaluated candidate, and the name of the binding budget.
+
+    Candidates are pairs (n, T) over the table caps ``normal_caps``; a cap T is only tried at n
+    where H^n has more than T distinct normals (otherwise it is the uncapped table)."""
+    occ_vol = len(family.grid_indices) * family.voxel_size**3
+    normals = _Normals(family)
+    counts = plane_counts(family, normals.merged_per_node)
+    pairs: list[tuple[int, int | None]] = []
+    for T in normal_caps:
+        table = normals.count if T is None else (lambda n, T=T: min(T, normals.count(n)))
+        ns, _ = candidate_ns(family, budget, table, counts, curve=T is None)  # one curve, uncapped
+        for n in ns:
+            if T is not None and normals.count(n) <= T:
+                continue  # the table is not capped at this n: same as uncapped
+            pairs.append((n, T))
+    pairs = sorted(set(pairs), key=lambda p: (p[0], -1 if p[1] is None else -p[1]))
+    done = _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress)
+    if not done:
+        raise PolyccError(impossible_budget_message(family, budget))
+    # least conservative; among candidates within the Monte Carlo 95 % half-width of it
+    # (statistically tied) the fewest polytopes, which is the fastest on board
+    low = min(done, key=lambda c: (c.conservativeness, -c.n))
+    best = min((c for c in done if c.conservativeness <= low.conservativeness + low.conservativeness_ci),
+               key=lambda c: (c.n, c.conservativeness))
+    return best, done, binding_text(family, best, done)
+
+
+def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate]) -> str:
+    """Which budget stopped the choice: its name first ('flash', 'halfplanes', 'rate' or 'none'),
+    then why, for the summary."""
+    if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
+        return "none (the whole sub-cover fits)"
+    tightest = min(best.caps, key=best.caps.get)
+    slack = best.caps[tightest] - best.n_planes  # half-planes still free under that budget
+    full = slack < max(8, 2 * best.n_planes / best.n)  # not even two more average polytopes fit
+    larger = any(c.n > best.n for c in done)
+    if full and larger:
+        return (f"{tightest} (full; larger n fit only with a coarser normal table or fewer planes, "
+                "and were more conservative)")
+    if full or not larger:
+        return tightest
+    return "none (larger n fit, but were not measurably less conservative)"
+
+
+def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, progress=None) -> list[Candidate]:
+    caches: dict = {}  # shared by these candidates: drop costs and records of common polytopes
+    out = []
+    for i, (n, T) in enumerate(pairs):
+        c = realise(family, n, T, budget, normals_before[n], occ_vol, mc_samples, caches=caches)
+        if c is not None:
+            out.append(c)
+        if progress:
+            progress(i + 1)
+    return out
+
+
+def _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress) -> list[Candidate]:
+    """Realise every (n, T) pair.  The uncapped-table candidates run here, in order of n (they
+    share most polytopes, so the caches pay); the capped ones run in a forked worker on the
+    second core when the family is big enough for that to pay."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    counts = {n: normals.count(n) for n, _ in pairs}
+    here = [p for p in pairs if p[1] is None]
+    there = [p for p in pairs if p[1] is not None]
+    report = (lambda i: progress(i, len(pairs))) if progress else None
+    if there and here and "fork" in mp.get_all_start_methods() and family.n_max > 500:
+        with ProcessPoolExecutor(1, mp_context=mp.get_context("fork")) as ex:
+            fut = ex.submit(_realise_many, family, budget, there, counts, occ_vol, mc_samples)
+            done = _realise_many(family, budget, here, counts, occ_vol, mc_samples, report)
+            done += fut.result()
+    else:
+        done = _realise_many(family, budget, here + there, counts, occ_vol, mc_samples, report)
+    if progress and pairs:
+        progress(len(pairs), len(pairs))
+    return sorted(done, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+
+
+def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
+    """Explain an impossible budget and give the smallest one that would work."""
+    p1 = family.materialise(1)[0]
+    need_planes = len(p1.halfplanes)
+    for cap in range(MIN_PLANES, len(p1.halfplanes) + 1):
+        if reduce_planes([(p1.halfplanes, p1.vertices)], cap, per_polytope=MAX_POLY_PLANES) is not None:
+            need_planes = cap
+            break
+    need = data_bytes(1, need_planes, need_planes)
+    parts = [f"even one polytope needs {need_planes} half-planes = {need} bytes ({need / 1024:.3f} KiB)"]
+    if budget.flash_bytes < need:
+        parts.append(f"--flash-kb {budget.flash_bytes / 1024:g} is too small: use --flash-kb {math.ceil(need / 1024 * 100) / 100:g} or more")
+    if budget.max_halfplanes is not None and budget.max_halfplanes < need_planes:
+        parts.append(f"--max-halfplanes {budget.max_halfplanes} is too small: use {need_planes} or more")
+    if budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:
+        parts.append("--rate-hz is too high for even one polytope: lower it")
+    return "; ".join(parts)

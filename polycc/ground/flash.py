@@ -1,0 +1,145 @@
+"""Build the Crazyflie firmware with the polycc app and a scene header, report its size, flash it.
+
+An out-of-tree build of ``firmware_app/`` (:func:`polycc.resources.firmware_app`) against a
+user-given crazyflie-firmware tree; sizes are counted as the firmware's ``tools/make/size.py``
+does; flashing goes through ``cfloader`` over a Crazyradio.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from polycc import resources
+from polycc.errors import PolyccError
+from polycc.version import __version__
+
+APP_FILES = ["Makefile", "Kbuild", "app-config"]
+SUBMODULES = {
+    "vendor/FreeRTOS": "vendor/FreeRTOS/include/FreeRTOS.h",
+    "vendor/CMSIS": "vendor/CMSIS/CMSIS/Core/Include",
+    "vendor/libdw1000": "vendor/libdw1000/inc",
+}
+CRAZYRADIO_USB = ("1915", "7777")  # Bitcraze Crazyradio PA / 2.0 (vendor, product)
+DEFAULT_URI = "radio://0/80/2M/E7E7E7E7E7"
+# Flash and RAM of the STM32F405 on the Crazyflie 2.x (the firmware reserves the first
+# 16 KB of flash for the bootloader).
+FLASH_BYTES = 1024 * 1024 - 16 * 1024
+RAM_BYTES = 128 * 1024
+CCM_BYTES = 64 * 1024
+
+@dataclass
+class Step:
+    what: str
+    cmd: list[str] | None = None
+    cwd: Path | None = None
+
+
+def check_firmware(base: Path) -> list[str]:
+    if not (base / "tools" / "make" / "oot.mk").is_file():
+        raise PolyccError(f"{base}: no crazyflie-firmware tree here (tools/make/oot.mk missing); "
+                          "git clone --recursive https://github.com/bitcraze/crazyflie-firmware and pass its path")
+    missing = [name for name, probe in SUBMODULES.items() if not (base / probe).exists()]
+    if missing:
+        raise PolyccError(f"{base}: submodules {', '.join(missing)} are empty; run "
+                          "`git submodule update --init --recursive` in the firmware tree")
+    notes = []
+    if not (base / ".git").exists():
+        notes.append("the firmware tree has no .git: a build_info.json with the version tag goes into the build folder")
+    return notes
+
+
+def check_toolchain() -> None:
+    missing = [t for t in ("arm-none-eabi-gcc", "arm-none-eabi-size", "make") if shutil.which(t) is None]
+    if missing:
+        raise PolyccError(f"no ARM toolchain: {', '.join(missing)} not on PATH; apt-get install gcc-arm-none-eabi "
+                          "libnewlib-arm-none-eabi make (or the Arm GNU Toolchain) and retry")
+
+
+def crazyradio_present() -> bool | None:
+    """True/False from the USB device list; None when it cannot be read (not Linux)."""
+    root = Path("/sys/bus/usb/devices")
+    if not root.is_dir():
+        return None
+    for dev in root.iterdir():
+        try:
+            ids = ((dev / "idVendor").read_text().strip(), (dev / "idProduct").read_text().strip())
+        except OSError:
+            continue
+        if ids == CRAZYRADIO_USB:
+            return True
+    return False
+
+
+def check_flasher(uri: str) -> list[str]:
+    notes = []
+    if importlib.util.find_spec("cfloader") is None:
+        raise PolyccError("cfloader not found: pip install cfclient (it provides `python -m cfloader`), "
+                          "or use --no-flash")
+    if uri.startswith("radio://"):
+        present = crazyradio_present()
+        if present is False:
+            raise PolyccError(f"no Crazyradio on USB (vendor:product {':'.join(CRAZYRADIO_USB)}) for {uri}; "
+                              "plug it in (and install its udev rules), or use --no-flash")
+        if present is None:
+            notes.append("cannot list USB devices here; cfloader will report a missing Crazyradio")
+    return notes
+
+
+def size_report(elf: Path) -> dict[str, int]:
+    """Berkeley text/data/bss of an object."""
+    r = subprocess.run(["arm-none-eabi-size", str(elf)], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise PolyccError(f"arm-none-eabi-size {elf} failed: {r.stderr.strip()}")
+    text, data, bss = (int(v) for v in r.stdout.splitlines()[1].split()[:3])
+    return {"text": text, "data": data, "bss": bss}
+
+
+def firmware_sizes(elf: Path) -> dict[str, int]:
+    """Flash, RAM and CCM use of the firmware ELF, counted as the firmware's tools/make/size.py does:
+    flash = .text + .data + .ccmdata, RAM = .data + .bss, CCM = .ccmbss + .ccmdata."""
+    r = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise PolyccError(f"arm-none-eabi-size -A {elf} failed: {r.stderr.strip()}")
+    sec = {}
+    for line in r.stdout.splitlines():
+        parts = line.split()
+        if len(parts) >= 2 and parts[0].startswith(".") and parts[1].isdigit():
+            sec[parts[0]] = int(parts[1])
+    g = lambda k: sec.get(k, 0)  # noqa: E731
+    return {"flash": g(".text") + g(".data") + g(".ccmdata"), "ram": g(".data") + g(".bss"),
+            "ccm": g(".ccmbss") + g(".ccmdata")}
+
+
+def plan(out: Path, base: Path, build: Path, uri: str, jobs: int, flash: bool) -> list[Step]:
+    app = build / "polycc_app"
+    steps = [Step(f"copy firmware_app/ and {out / 'polytopes.h'} into {app}")]
+    if not (base / ".git").exists():
+        steps.append(Step(f"write {app / 'build' / 'build_info.json'} (firmware tree without .git)"))
+    steps.append(Step("build the firmware with the app (out-of-tree)",
+                      ["make", f"-j{jobs}", f"CRAZYFLIE_BASE={base}", f"POLYCC_SCENE={app / 'polytopes.h'}"], app))
+    steps.append(Step("report flash and RAM use", ["arm-none-eabi-size", str(app / "build" / "cf2.elf")], app))
+    if flash:
+        steps.append(Step(f"flash over the Crazyradio ({uri})",
+                          [sys.executable, "-m", "cfloader", "flash", str(app / "build" / "cf2.bin"), "stm32-fw",
+                           "-w", uri], app))
+    return steps
+
+
+def copy_app(out: Path, app: Path, base: Path) -> None:
+    app.mkdir(parents=True, exist_ok=True)
+    for f in APP_FILES:
+        shutil.copy2(resources.firmware_app() / f, app / f)
+    (app / "src").mkdir(exist_ok=True)
+    for f in (resources.firmware_app() / "src").iterdir():
+        if f.suffix in (".c", ".h") or f.name == "Kbuild":
+            shutil.copy2(f, app / "src" / f.name)
+    shutil.copy2(out / "polytopes.h", app / "polytopes.h")
+    if not (base / ".git").exists():
+        (app / "build").mkdir(exist_ok=True)
+        (app / "build" / "build_info.json").write_text(json.dumps({"tag": f"polycc-{__version__}"}) + "\n")

@@ -1,0 +1,191 @@
+"""The library entry point: scene -> occupancy -> cover -> budget -> codegen.
+
+:func:`build` does what ``polycc build`` does and returns a :class:`BuildResult`; the CLI only
+parses options and prints. Stages report through ``progress(stage, done, total)`` (stage is one
+of ``"read"``, ``"voxelize"``, ``"floaters"``, ``"cover"``, ``"budget"``, ``"write"``) so a caller
+can show progress; the pipeline itself prints nothing. World frame, metres.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from polycc.budget import cycle_model
+from polycc.budget.select import Budget, Candidate, select
+from polycc.codegen.header import write_outputs
+from polycc.cover.build import DEFAULT_MERGE_COST, build_cover
+from polycc.cover.family import CoverFamily
+from polycc.errors import PolyccError
+from polycc.occupancy.exact import voxelize
+from polycc.occupancy.floaters import floater_loss, floater_text, loss_record
+from polycc.occupancy.grid import OccupancyGrid
+from polycc.onboard.layout import stored_vertices
+from polycc.report.plots import write_report
+from polycc.scene.load import Scene, load_scene
+from polycc.scene.settings import SceneSettings
+
+Progress = Callable[[str, float, float], None]
+
+
+@dataclass
+class BuildOptions:
+    """Budgets and cover options of ``polycc build`` (see its ``--help`` for units and ranges)."""
+
+    flash_kb: float = 64.0  # KiB of generated constant data
+    max_halfplanes: int | None = None
+    rate_hz: float | None = None  # Hz; with cpu_share, a worst-case compute budget
+    cpu_share: float = cycle_model.DEFAULT_CPU_SHARE
+    kappa: float = 100.0  # 1/m
+    neighborhood: int = 1  # cluster radius b, voxels
+    boxes: bool = True
+    merge_cost: str = DEFAULT_MERGE_COST
+    mc_samples: int = 100_000
+
+    def budget(self) -> Budget:
+        rate = cycle_model.cycle_budget(self.rate_hz, self.cpu_share) if self.rate_hz is not None else None
+        return Budget(int(self.flash_kb * 1024), self.max_halfplanes, rate)
+
+
+@dataclass
+class BuildResult:
+    out: Path
+    scene: Scene
+    occupancy: OccupancyGrid
+    family: CoverFamily
+    best: Candidate
+    candidates: list[Candidate]
+    binding: str
+    modelled_us: dict
+    manifest: dict
+    timings_s: dict = field(default_factory=dict)
+
+
+def read(scene_path: str | Path, settings: SceneSettings, progress: Progress | None = None) -> Scene:
+    """The scene with every scene option of ``settings`` applied."""
+    if progress:
+        progress("read", 0, 1)
+    t = time.perf_counter()
+    scene = load_scene(scene_path, settings.scene_options())
+    scene.stats_time_s = time.perf_counter() - t
+    return scene
+
+
+def occupancy(scene: Scene, settings: SceneSettings, progress: Progress | None = None) -> OccupancyGrid:
+    """Exact V+ of the scene at ``settings.voxel``, with the floater filter's loss computed."""
+    n = len(scene.ellipsoids)
+    t = time.perf_counter()
+    occ = voxelize(scene.ellipsoids, settings.voxel, settings.min_splats_per_voxel,
+                   progress=(lambda done: progress("voxelize", done, n)) if progress else None)
+    occ.stats["time_s"] = time.perf_counter() - t
+    if settings.min_splats_per_voxel > 1 and occ.removed is not None and len(occ.removed):
+        if progress:
+            progress("floaters", 0, 1)
+        occ.floater_loss = floater_loss(scene.ellipsoids, occ.indices, occ.removed, occ.voxel_size, occ.origin)
+        occ.stats["floater_filter"] = loss_record(occ.floater_loss)
+    if len(occ) == 0:
+        raise PolyccError(
+            f"{scene.path}: no voxel has {settings.min_splats_per_voxel} or more splats touching it; "
+            "lower --min-splats-per-voxel or use a larger --voxel")
+    return occ
+
+
+def build(scene_path: str | Path, out: str | Path, settings: SceneSettings | None = None,
+          options: BuildOptions | None = None, progress: Progress | None = None) -> BuildResult:
+    """Build the on-board scene of ``scene_path`` into the folder ``out``.
+
+    Parameters
+    ----------
+    scene_path : path of a 3DGS .ply, point-cloud .ply or .splat file.
+    out : output folder (created): ``polytopes.h``, ``manifest.json``, ``scene.bin``, ``cover.npz``,
+        ``report.png``.
+    settings : scene and occupancy options (default: :class:`SceneSettings` defaults: sigma 1,
+        no transform, 5 cm voxels).
+    options : budgets and cover options (default: 64 KiB, no other budget).
+    progress : ``progress(stage, done, total)``, called as the stages advance.
+
+    Returns
+    -------
+    BuildResult with the chosen candidate (``best``: n, half-planes, bytes, conservativeness with
+    its 95 % half-width), every candidate measured, the binding budget, the modelled on-board
+    time (typical and worst, microseconds at 168 MHz) and the manifest written.
+    """
+    t_all = time.perf_counter()
+    settings = settings or SceneSettings()
+    options = options or BuildOptions()
+    budget = options.budget()
+    out = Path(out)
+    scene = read(scene_path, settings, progress)
+    occ = occupancy(scene, settings, progress)
+    if progress:
+        progress("cover", 0, 1)
+    t = time.perf_counter()
+    family = build_cover(occ, b=options.neighborhood, cost=options.merge_cost, boxes=options.boxes)
+    t_cover = time.perf_counter() - t
+    out.mkdir(parents=True, exist_ok=True)
+    family.meta.update({"scene_sha256": scene.sha256, "scene": str(scene_path),
+                        "scene_settings": settings.as_record()})
+    family.save(out / "cover.npz")
+
+    t = time.perf_counter()
+    best, cands, binding = select(family, budget, mc_samples=options.mc_samples,
+                                  progress=(lambda d, n: progress("budget", d, n)) if progress else None)
+    t_budget = time.perf_counter() - t
+    us = cycle_model.estimate_us(best.packed, options.kappa)
+    if progress:
+        progress("write", 0, 1)
+    man = write_outputs(out, best.packed, _meta(scene_path, scene, occ, family, best, cands, binding, us, settings,
+                                                options, budget))
+    write_report(out / "report.png", scene.ellipsoids.centers,
+                 [v if v is not None else np.zeros((1, 3)) for v in stored_vertices(best.packed)],
+                 tradeoff_curve(cands), (best.n, best.conservativeness),
+                 f"{Path(scene_path).name}: n = {best.n}, {best.n_planes} half-planes, {best.bytes} B of "
+                 f"{budget.flash_bytes} B, conservativeness {best.conservativeness:.4f}")
+    timings = {"occupancy": occ.stats.get("time_s", 0.0), "cover": t_cover, "budget": t_budget,
+               "total": time.perf_counter() - t_all}
+    return BuildResult(out, scene, occ, family, best, cands, binding, us, man, timings)
+
+
+def tradeoff_curve(cands: list[Candidate]) -> list[tuple[int, float, float]]:
+    """(n, conservativeness, 95 % half-width) of the least conservative candidate at each n."""
+    per_n: dict = {}
+    for c in cands:
+        if c.n not in per_n or c.conservativeness < per_n[c.n].conservativeness:
+            per_n[c.n] = c
+    return [(c.n, c.conservativeness, c.conservativeness_ci) for _, c in sorted(per_n.items())]
+
+
+def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, options, budget) -> dict:
+    rec = settings.as_record()
+    opts = {**{k: v for k, v in rec.items() if k != "world_matrix"}, **asdict(options)}
+    stats = {
+        "splats_read": scene.stats.read, "splats_kept": scene.stats.kept, "scene_stats": scene.stats.as_dict(),
+        "voxels": len(occ), "voxel_size_m": occ.voxel_size, "occupied_volume_m3": occ.volume(),
+        "n_subcover": family.n_max, "n": best.n, "halfplanes": best.n_planes,
+        "halfplanes_before_reduction": best.planes_before, "halfplanes_dropped": best.dropped,
+        "halfplanes_merged": best.merged,
+        "normals": best.n_normals, "normals_before_reduction": best.normals_before,
+        "normal_table_cap": best.max_normals, "quantum_m": float(best.packed.quantum),
+        "bytes": best.bytes, "budget_bytes": budget.flash_bytes, "bytes_per_halfplane": best.bytes / best.n_planes,
+        "max_halfplanes": min(best.caps.values()), "binding_budget": binding,
+        "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
+        "union_volume_m3": best.union_volume, "modelled_us": us,
+        "floater_filter": occ.stats.get("floater_filter"),
+        "candidates": [{"n": c.n, "normal_table_cap": c.max_normals, "normals": c.n_normals, "halfplanes": c.n_planes,
+                        "dropped": c.dropped, "bytes": c.bytes, "conservativeness": c.conservativeness,
+                        "ci95": c.conservativeness_ci} for c in cands],
+    }
+    identity = np.array_equal(np.asarray(rec["world_matrix"]), np.eye(4))
+    return {
+        "scene_settings": rec, "floater_line": floater_text(occ.stats) or "none (--min-splats-per-voxel 1)",
+        "kappa": options.kappa, "budget_bytes": budget.flash_bytes, "max_planes": min(best.caps.values()),
+        "binding": binding,
+        "conservativeness_text": f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% CI)",
+        "options": opts, "transform": None if identity else rec["world_matrix"],
+        "scene": {"name": Path(scene_path).name, "path": str(scene_path), "sha256": scene.sha256},
+        "stats": stats,
+    }

@@ -1,0 +1,1 @@
+"""Plots of covers, builds and flights (PNG, matplotlib, world frame, metres)."""

@@ -1,0 +1,212 @@
+"""Scene ingest: read a splat file, validate it, move it to metres, filter, crop.
+
+Nothing is dropped silently: :class:`SceneStats` counts every splat read, and how many
+were invalid (NaN/Inf or a degenerate quaternion), below ``min_opacity`` or outside
+the crop box. Invalid splats are refused unless ``drop_invalid`` is set.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from polycc.geometry.ellipsoid_box import boxes_intersect
+from polycc.scene.ellipsoids import SIGMA_FLOOR_M, Ellipsoids, quaternion_to_rotation
+from polycc.errors import PolyccError
+from polycc.scene.readers import read_splats
+from polycc.scene.transform import apply_transform, check_transform, scale_matrix
+
+# A quaternion shorter than this (before normalisation) has no defined rotation.
+QUAT_MIN_NORM = 1e-6
+
+
+@dataclass
+class SceneOptions:
+    """How to read a scene. Lengths in metres after the transform.
+
+    sigma:        k, the ellipsoid is the k-sigma level set.
+    min_opacity:  drop splats with activated opacity below this (0 keeps all).
+    transform:    4x4 matrix from the file's frame to the world frame (metres), or None.
+    scale:        uniform scale applied after ``transform`` (None = 1).
+    crop:         (xmin, ymin, zmin, xmax, ymax, zmax) metres, world frame; keeps every
+                  ellipsoid that meets the box, including those that straddle its boundary.
+    drop_invalid: skip NaN/Inf splats and degenerate quaternions instead of refusing.
+    """
+
+    sigma: float = 1.0
+    min_opacity: float = 0.0
+    transform: np.ndarray | None = None
+    scale: float | None = None
+    crop: tuple[float, float, float, float, float, float] | None = None
+    drop_invalid: bool = False
+
+    def world_matrix(self) -> np.ndarray:
+        T = np.eye(4) if self.transform is None else np.asarray(self.transform, np.float64)
+        if self.scale is not None:
+            T = scale_matrix(self.scale) @ T
+        return T
+
+
+@dataclass
+class SceneStats:
+    read: int = 0
+    invalid: int = 0
+    invalid_nonfinite: int = 0
+    invalid_quaternion: int = 0
+    filtered_opacity: int = 0
+    cropped: int = 0
+    sigma_floored: int = 0
+    kept: int = 0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Scene:
+    path: Path
+    ellipsoids: Ellipsoids
+    options: SceneOptions
+    stats: SceneStats = field(default_factory=SceneStats)
+    sha256: str = ""
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
+    """Read, validate, transform, filter and crop a scene file.
+
+    Parameters
+    ----------
+    path : a 3DGS .ply (graphdeco layout, any property order), a point-cloud .ply (x y z
+        [radius]) or an antimatter15 .splat file.
+    opts : sigma (the k-sigma ellipsoid), opacity filter, 4x4 trainer-frame -> world transform
+        (metres), uniform scale, crop box (metres, world frame), whether to drop invalid splats.
+
+    Returns
+    -------
+    Scene with ``ellipsoids`` (world frame, metres), ``stats`` counting every splat read,
+    invalid, filtered and cropped (nothing is dropped silently) and the file's ``sha256``.
+
+    Raises PolyccError (one line: the file, the problem and the fix) on bad input.
+    """
+    opts = opts or SceneOptions()
+    path = Path(path)
+    _check_options(opts)
+    raw = read_splats(path)
+    stats = SceneStats(read=int(raw.positions.shape[0]))
+    if stats.read == 0:
+        raise PolyccError(f"{path}: the file holds zero splats; export a scene with Gaussians in it")
+
+    # -- validity: finite numbers and a usable quaternion
+    finite = np.isfinite(raw.positions).all(axis=1) & np.isfinite(raw.sigmas).all(axis=1) & np.isfinite(raw.opacity)
+    if raw.quats is not None:
+        finite &= np.isfinite(raw.quats).all(axis=1)
+        qn = np.linalg.norm(np.where(np.isfinite(raw.quats), raw.quats, 0.0), axis=1)
+        bad_q = finite & (qn < QUAT_MIN_NORM)
+    else:
+        qn = None
+        bad_q = np.zeros(stats.read, bool)
+    stats.invalid_nonfinite = int((~finite).sum())
+    stats.invalid_quaternion = int(bad_q.sum())
+    valid = finite & ~bad_q
+    stats.invalid = stats.read - int(valid.sum())
+    if stats.invalid and not opts.drop_invalid:
+        parts = []
+        if stats.invalid_nonfinite:
+            parts.append(f"{stats.invalid_nonfinite} splats with NaN/Inf values")
+        if stats.invalid_quaternion:
+            parts.append(f"{stats.invalid_quaternion} with a zero-length rotation quaternion")
+        raise PolyccError(
+            f"{path}: {' and '.join(parts)} (of {stats.read}); pass --drop-invalid to skip them, or fix the export"
+        )
+
+    # -- activations and frame
+    sig = raw.sigmas[valid]
+    if raw.quats is None:
+        R = np.broadcast_to(np.eye(3), (int(valid.sum()), 3, 3)).copy()
+        sig = sig / opts.sigma  # a point's radius is its extent whatever k is
+    else:
+        q = raw.quats[valid] / qn[valid, None]
+        R = quaternion_to_rotation(q)
+    ell = Ellipsoids(
+        centers=raw.positions[valid],
+        rotations=R,
+        sigmas=np.abs(sig),
+        k=float(opts.sigma),
+        opacity=raw.opacity[valid],
+        colors=None if raw.colors is None else raw.colors[valid],
+    )
+    T = opts.world_matrix()
+    if not np.array_equal(T, np.eye(4)):
+        ell = apply_transform(ell, T)
+    small = ell.sigmas < SIGMA_FLOOR_M
+    stats.sigma_floored = int(small.any(axis=1).sum())
+    if stats.sigma_floored:
+        ell.sigmas = np.maximum(ell.sigmas, SIGMA_FLOOR_M)
+
+    # -- opacity filter
+    if opts.min_opacity > 0:
+        keep = ell.opacity >= opts.min_opacity
+        stats.filtered_opacity = int((~keep).sum())
+        ell = ell.subset(keep)
+
+    # -- crop (exact ellipsoid-box test; straddling ellipsoids are kept)
+    if opts.crop is not None and len(ell):
+        lo = np.asarray(opts.crop[:3], np.float64)
+        hi = np.asarray(opts.crop[3:], np.float64)
+        keep = crop_mask(ell, lo, hi)
+        stats.cropped = int((~keep).sum())
+        ell = ell.subset(keep)
+
+    stats.kept = len(ell)
+    if stats.kept == 0:
+        why = []
+        if stats.invalid:
+            why.append(f"{stats.invalid} invalid")
+        if stats.filtered_opacity:
+            why.append(f"{stats.filtered_opacity} below --min-opacity {opts.min_opacity:g}")
+        if stats.cropped:
+            why.append(f"{stats.cropped} outside --crop")
+        raise PolyccError(
+            f"{path}: zero splats left after filtering ({', '.join(why)} of {stats.read} read); "
+            "lower --min-opacity or widen --crop (the crop box is in metres, after --transform/--scale)"
+        )
+    return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=file_sha256(path))
+
+
+def crop_mask(ell: Ellipsoids, lo: np.ndarray, hi: np.ndarray, chunk: int = 200_000) -> np.ndarray:
+    """(N,) bool: ellipsoid meets the box [lo, hi] (metres)."""
+    keep = np.zeros(len(ell), bool)
+    h = ell.aabb_halfwidth()
+    near = np.all((ell.centers + h >= lo) & (ell.centers - h <= hi), axis=1)
+    idx = np.flatnonzero(near)
+    for s in range(0, idx.size, chunk):
+        sl = idx[s : s + chunk]
+        sub = ell.subset(sl)
+        keep[sl] = boxes_intersect(sub.centers, sub.whitening(), np.broadcast_to(lo, (sl.size, 3)), np.broadcast_to(hi, (sl.size, 3)))
+    return keep
+
+
+def _check_options(opts: SceneOptions) -> None:
+    if not (np.isfinite(opts.sigma) and opts.sigma > 0):
+        raise PolyccError(f"--sigma {opts.sigma}: must be a positive number of standard deviations (1 = paper, 3 = render extent)")
+    if not (0.0 <= opts.min_opacity <= 1.0):
+        raise PolyccError(f"--min-opacity {opts.min_opacity}: must be between 0 and 1")
+    if opts.scale is not None and not (np.isfinite(opts.scale) and opts.scale > 0):
+        raise PolyccError(f"--scale {opts.scale}: must be a positive factor (file units to metres)")
+    if opts.transform is not None:
+        check_transform(np.asarray(opts.transform, np.float64), "--transform")
+    if opts.crop is not None:
+        c = np.asarray(opts.crop, np.float64)
+        if c.shape != (6,) or not np.all(np.isfinite(c)) or np.any(c[:3] >= c[3:]):
+            raise PolyccError("--crop: give xmin,ymin,zmin,xmax,ymax,zmax in metres with each min < max")

@@ -1,0 +1,219 @@
+"""Readers for splat files: 3DGS .ply (any property order), point-cloud .ply, antimatter15 .splat.
+
+Each reader returns :class:`RawSplats` in the file's own frame and units, with the
+activations applied (sigma = exp(scale), opacity = sigmoid(opacity)) but quaternions
+not yet normalised; validation happens in :mod:`polycc.scene.load`.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from polycc.errors import PolyccError
+
+SH_C0 = 0.28209479177387814  # degree-0 spherical-harmonic constant (colour = 0.5 + C0 * f_dc)
+
+
+@dataclass
+class RawSplats:
+    """Splats as stored, activations applied, file frame.
+
+    positions: (N, 3) float64; sigmas: (N, 3) float64 linear std devs (for point clouds:
+    the point radius, or 0); quats: (N, 4) float64 (w, x, y, z), not normalised, or None
+    for point clouds (spheres); opacity: (N,) float32 in [0, 1]; colors: (N, 3) uint8 or None.
+    is_points: True for plain point clouds, whose sigma is a radius (independent of k).
+    """
+
+    positions: np.ndarray
+    sigmas: np.ndarray
+    quats: np.ndarray | None
+    opacity: np.ndarray
+    colors: np.ndarray | None
+    is_points: bool = False
+
+
+def read_splats(path: str | Path) -> RawSplats:
+    """Read any supported scene file, choosing the reader by extension."""
+    path = Path(path)
+    if not path.exists():
+        raise PolyccError(f"{path}: no such file; check the path")
+    if path.is_dir():
+        raise PolyccError(f"{path}: is a directory; give a .ply or .splat file")
+    ext = path.suffix.lower()
+    if ext == ".ply":
+        return read_ply(path)
+    if ext == ".splat":
+        return read_splat(path)
+    raise PolyccError(
+        f"{path}: unknown extension '{path.suffix}'; polycc reads 3DGS or point-cloud .ply and antimatter15 .splat files"
+    )
+
+
+# ---------------------------------------------------------------------------- .splat
+
+_SPLAT_DTYPE = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+
+
+def read_splat(path: Path) -> RawSplats:
+    """antimatter15 .splat: 32-byte records (pos f32[3], linear scale f32[3], RGBA u8[4], quat u8[4] as q*128+128)."""
+    size = path.stat().st_size
+    if size == 0:
+        raise PolyccError(f"{path}: the file is empty; re-export the scene")
+    if size % _SPLAT_DTYPE.itemsize:
+        raise PolyccError(
+            f"{path}: truncated .splat file ({size} bytes is not a multiple of the 32-byte record); re-export or re-download it"
+        )
+    rec = np.fromfile(path, dtype=_SPLAT_DTYPE)
+    return RawSplats(
+        positions=rec["pos"].astype(np.float64),
+        sigmas=rec["scale"].astype(np.float64),
+        quats=(rec["rot"].astype(np.float64) - 128.0) / 128.0,
+        opacity=(rec["rgba"][:, 3].astype(np.float32) / np.float32(255.0)),
+        colors=rec["rgba"][:, :3].copy(),
+    )
+
+
+# ---------------------------------------------------------------------------- .ply
+
+def _suffix_sorted(names: list[str], prefix: str) -> list[str]:
+    pat = re.compile(re.escape(prefix) + r"(\d+)$")
+    found = [(int(m.group(1)), n) for n in names if (m := pat.match(n))]
+    return [n for _, n in sorted(found)]
+
+
+def read_ply(path: Path) -> RawSplats:
+    """A 3DGS .ply (graphdeco layout or any subset/order, by property name) or an x y z [radius] point cloud."""
+    from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
+
+    try:
+        ply = PlyData.read(str(path))
+        if "vertex" not in ply:
+            raise PolyccError(f"{path}: the .ply has no 'vertex' element; export the splats (or points) as vertices")
+        faces = [e for e in ply.elements if e.name in ("face", "tristrips", "edge")]
+        if faces:
+            e = faces[0]
+            raise PolyccError(
+                f"{path}: the .ply is a mesh ({e.count:,} '{e.name}' elements); polycc reads splats and points, "
+                "and reading only the mesh's vertices would leave its surfaces out of the cover; sample the mesh "
+                "surface into a dense point cloud (x y z radius) or splats first (mesh voxelization is not supported yet)"
+            )
+        _check_body_length(path, ply)
+        v = ply["vertex"].data
+    except PolyccError:
+        raise
+    except PlyHeaderParseError as exc:
+        raise PolyccError(f"{path}: not a valid .ply header ({exc}); re-export the file") from None
+    except (PlyElementParseError, ValueError, EOFError, MemoryError, IndexError) as exc:
+        raise PolyccError(f"{path}: truncated or corrupt .ply data ({_one_line(exc)}); re-export or re-download the file") from None
+    except OSError as exc:
+        raise PolyccError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+
+    names = list(v.dtype.names or ())
+    n = len(v)
+    missing_xyz = [a for a in ("x", "y", "z") if a not in names]
+    if missing_xyz:
+        raise PolyccError(
+            f"{path}: the vertex element has no {'/'.join(missing_xyz)} property (it has: {', '.join(names[:12])}); "
+            "polycc needs splat centres named x, y, z"
+        )
+    pos = np.stack([np.asarray(v[a], np.float64) for a in ("x", "y", "z")], axis=1)
+
+    scales = _suffix_sorted(names, "scale_")
+    rots = _suffix_sorted(names, "rot_")
+    gaussian_markers = bool(scales or rots or "opacity" in names)
+    if not gaussian_markers:
+        radius = np.asarray(v["radius"], np.float64) if "radius" in names else np.zeros(n)
+        return RawSplats(
+            positions=pos,
+            sigmas=np.repeat(radius[:, None], 3, axis=1),
+            quats=None,
+            opacity=np.ones(n, np.float32),
+            colors=_ply_colors(v, names),
+            is_points=True,
+        )
+
+    if len(scales) != 3:
+        have = ", ".join(scales) or "none"
+        raise PolyccError(
+            f"{path}: a 3DGS .ply needs scale_0, scale_1, scale_2 (found: {have}); re-export from the trainer, "
+            "or strip the Gaussian properties to read it as an x y z point cloud"
+        )
+    if len(rots) != 4:
+        have = ", ".join(rots) or "none"
+        raise PolyccError(
+            f"{path}: a 3DGS .ply needs rot_0..rot_3 (quaternion w, x, y, z; found: {have}); re-export from the trainer"
+        )
+    with np.errstate(over="ignore"):
+        sig = np.exp(np.stack([np.asarray(v[a], np.float64) for a in scales], axis=1))
+    quats = np.stack([np.asarray(v[a], np.float64) for a in rots], axis=1)
+    if "opacity" in names:
+        with np.errstate(over="ignore"):
+            op = (1.0 / (1.0 + np.exp(-np.asarray(v["opacity"], np.float64)))).astype(np.float32)
+        op[~np.isfinite(np.asarray(v["opacity"], np.float64))] = np.nan
+    else:
+        op = np.ones(n, np.float32)
+    return RawSplats(positions=pos, sigmas=sig, quats=quats, opacity=op, colors=_ply_colors(v, names))
+
+
+def _header_length(path: Path) -> int:
+    """Bytes of the .ply header, up to and including the newline after ``end_header``."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 20)
+    m = re.search(rb"end_header[ \t]*\r?\n", head)
+    if m is None:
+        raise PolyccError(f"{path}: no 'end_header' line in the first MiB; not a valid .ply header, re-export the file")
+    return m.end()
+
+
+def _check_body_length(path: Path, ply) -> None:
+    """Refuse a body longer than its header declares (for a shorter one plyfile already fails).
+
+    Data past the declared elements would be ignored: splats the header does not count would be
+    silently missing from the cover."""
+    size = path.stat().st_size
+    declared = sum(int(e.count) for e in ply.elements)
+    if ply.text:
+        with open(path, "rb") as f:
+            f.seek(_header_length(path))
+            rows = sum(1 for line in f if line.strip())
+        if rows != declared:
+            raise PolyccError(
+                f"{path}: the header declares {declared:,} rows but the ASCII body holds {rows:,}; "
+                "the file was cut or appended to; re-export it"
+            )
+        return
+    if any(getattr(p, "len_dtype", None) is not None for e in ply.elements for p in e.properties):
+        with open(path, "rb") as f:  # list properties: let plyfile walk the body and see where it ends
+            type(ply).read(f, mmap=False)
+            end = f.tell()
+    else:
+        end = _header_length(path) + sum(int(e.count) * e.dtype().itemsize for e in ply.elements)
+    if end != size:
+        extra = size - end
+        what = f"{extra:,} bytes more" if extra > 0 else f"{-extra:,} bytes fewer"
+        recs = ""
+        v = ply["vertex"]
+        if extra > 0 and len(ply.elements) == 1 and extra % v.dtype().itemsize == 0:
+            recs = f" ({extra // v.dtype().itemsize:,} more vertices than its {v.count:,})"
+        raise PolyccError(
+            f"{path}: the binary body holds {what} than the header declares{recs}; the file was cut or appended "
+            "to, so some splats would be ignored; re-export it with the right vertex count"
+        )
+
+
+def _ply_colors(v, names: list[str]) -> np.ndarray | None:
+    if all(f"f_dc_{i}" in names for i in range(3)):
+        dc = np.stack([np.asarray(v[f"f_dc_{i}"], np.float64) for i in range(3)], axis=1)
+        rgb = np.clip(0.5 + SH_C0 * np.nan_to_num(dc), 0.0, 1.0) * 255.0
+        return np.round(rgb).astype(np.uint8)
+    if all(c in names for c in ("red", "green", "blue")):
+        return np.stack([np.asarray(v[c]) for c in ("red", "green", "blue")], axis=1).astype(np.uint8)
+    return None
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())[:160] or type(exc).__name__

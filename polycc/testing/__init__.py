@@ -1,0 +1,3 @@
+"""Helpers for tests and benchmarks (synthetic polytopes, a fake cflib device model); not used by
+the pipeline.
+"""

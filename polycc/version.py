@@ -1,0 +1,3 @@
+"""The polycc version (one place)."""
+
+__version__ = "0.1.0"

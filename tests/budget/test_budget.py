@@ -1,0 +1,244 @@
+"""Budget, outward reduction and quantization, code generation (polycc build)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from polycc.testing.files import CHECKOUT as REPO
+from polycc.budget.select import Budget, plane_counts, select
+from polycc.cli import main
+from polycc.codegen.header import c_float, load_manifest_polytopes
+from polycc.occupancy.grid import OccupancyGrid
+from polycc.budget.reduce import reduce_planes
+from polycc.geometry.halfplanes import polytope_vertices
+from polycc.geometry.halfplanes import hull_halfplanes
+
+
+def random_hull(rng, n=25, scale=0.3):
+    pts = rng.normal(size=(n, 3)) * scale + rng.uniform(-3, 3, 3)
+    h = ConvexHull(pts)
+    return hull_halfplanes(pts), pts[h.vertices]
+
+
+def test_reduction_only_enlarges_and_stays_bounded():
+    rng = np.random.default_rng(2)
+    polys = [random_hull(rng, n=40) for _ in range(6)]
+    total = sum(len(h) for h, _ in polys)
+    cap = total // 2
+    red, added = reduce_planes(polys, cap)
+    assert sum(len(h) for h in red) <= cap and added >= 0
+    for (h, v), r in zip(polys, red):
+        assert np.all(v @ r[:, :3].T <= r[:, 3] + 1e-12)  # every original vertex still inside
+        assert polytope_vertices(r, v.mean(0)) is not None  # bounded
+    assert reduce_planes(polys, 3 * len(polys)) is None  # below 4 planes per polytope: impossible
+
+
+def test_c_float_is_exact():
+    for x in [0.0, 1.0, -2.5, 1e-7, 3.4e38, np.float32(0.1), -np.float32(1 / 3)]:
+        lit = c_float(x)
+        assert lit.endswith("f")
+        assert np.float32(float.fromhex(lit[:-1])) == np.float32(x)
+
+
+def _ring_args(tmp_path, kb, extra=()):
+    return ["build", str(REPO.parent / "shared" / "scenes" / "ring_10k.splat"), "--scale", "1.0", "--voxel", "0.02",
+            "--flash-kb", str(kb), "--mc-samples", "20000", "-o", str(tmp_path / f"out{kb}"), *extra]
+
+
+def _check_cover(out, grid: OccupancyGrid):
+    """Every corner of every occupied voxel satisfies all half-planes of some stored polytope."""
+    polys = load_manifest_polytopes(out)
+    lo = grid.lower_corners()
+    corners = np.concatenate([lo + grid.voxel_size * np.array([(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1]) for c in range(8)])
+    inside_any = np.zeros(len(lo), bool)
+    for h in polys:
+        ok = np.all(corners @ h[:, :3].T <= h[:, 3], axis=1).reshape(8, -1).all(axis=0)
+        inside_any |= ok
+    return inside_any
+
+
+@pytest.fixture(scope="module")
+def built4(tmp_path_factory):
+    if not (REPO.parent / "shared" / "scenes").is_dir():
+        pytest.skip("real scenes not found (../shared/scenes)")
+    tmp = tmp_path_factory.mktemp("build4")
+    assert main(_ring_args(tmp, 4)) == 0
+    return tmp
+
+
+@pytest.mark.parametrize("kb", [2, 4])
+def test_build_fits_budget_covers_every_voxel_and_compiles(tmp_path, built4, kb):
+    if kb == 4:
+        tmp_path = built4
+    else:
+        assert main(_ring_args(tmp_path, kb)) == 0
+    out = tmp_path / f"out{kb}"
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["format"] == "polycc-scene/1" and man["units"] == "m" and man["kappa"] == 100.0
+    assert man["stats"]["bytes"] <= kb * 1024
+    from polycc.cover.family import CoverFamily
+    fam = CoverFamily.load(out)
+    grid = OccupancyGrid(fam.grid_indices, fam.voxel_size, fam.origin)
+    assert _check_cover(out, grid).all()
+    assert (out / "report.png").stat().st_size > 10_000
+    src = out / "t.c"
+    src.write_text('#include "polytopes.h"\nint main(void) { return (int)polycc_scene.n_polys == (int)POLYCC_SCENE_N_POLYS ? 0 : 1; }\n')
+    cc = ["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", f"-I{REPO / 'firmware_app' / 'src'}", f"-I{out}"]
+    subprocess.run([*cc, str(src), "-o", str(out / "t")], check=True)
+    subprocess.run([str(out / "t")], check=True)
+    if shutil.which("arm-none-eabi-gcc"):
+        subprocess.run(["arm-none-eabi-gcc", "-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-Os",
+                        "-std=gnu11", "-Wall", "-Wdouble-promotion", "-Werror", "-fno-math-errno", "-ffp-contract=off",
+                        f"-I{REPO / 'firmware_app' / 'src'}", f"-I{out}", "-c", str(src), "-o", str(out / "t.o")], check=True)
+
+
+def test_byte_model_is_exact_and_within_budget(built4):
+    """Predicted bytes (layout formula from the counts) == what the header declares, <= budget."""
+    from polycc.budget.select import data_bytes
+    out = built4 / "out4"
+    st_ = json.loads((out / "manifest.json").read_text())["stats"]
+    assert st_["bytes"] == data_bytes(st_["n"], st_["halfplanes"], st_["normals"]) <= 4 * 1024
+    assert st_["normals"] <= st_["normals_before_reduction"] or st_["normal_table_cap"] is not None
+    head = (out / "polytopes.h").read_text()
+    assert f"#define POLYCC_SCENE_DATA_BYTES {st_['bytes']}u" in head
+    assert f"#define POLYCC_SCENE_N_NORMALS {st_['normals']}u" in head
+    for c in st_["candidates"]:
+        assert c["bytes"] <= 4 * 1024
+
+
+def test_build_is_deterministic(tmp_path, built4):
+    assert main(_ring_args(tmp_path, 4)) == 0
+    for name in ("polytopes.h", "manifest.json"):
+        assert (tmp_path / "out4" / name).read_bytes() == (built4 / "out4" / name).read_bytes()
+
+
+def test_impossible_budget_says_smallest_that_works(tmp_path, scenes_dir, capsys):
+    assert main(_ring_args(tmp_path, 0.1)) == 2
+    err = capsys.readouterr().err
+    assert "--flash-kb" in err and "or more" in err and "Traceback" not in err
+
+
+def test_halfplane_budget_binds(tmp_path, scenes_dir):
+    assert main(_ring_args(tmp_path, 64, ["--max-halfplanes", "120"])) == 0
+    man = json.loads((tmp_path / "out64" / "manifest.json").read_text())
+    assert man["stats"]["halfplanes"] <= 120 and man["stats"]["binding_budget"].split()[0] == "halfplanes"
+
+
+def test_plane_counts_match_materialised(built4):
+    from polycc.cover.family import CoverFamily
+    fam = CoverFamily.load(built4 / "out4")
+    counts = plane_counts(fam)
+    for n in sorted({1, 2, fam.n_max // 2, fam.n_max}):
+        assert counts[n] == fam.halfplane_count(n)
+
+
+def test_unbounded_four_plane_set_is_detected():
+    """Regression: qhull's half-space intersection returned finite 'vertices' for an
+    unbounded 4-plane set produced by reduction (capture arena, 8 KiB)."""
+    from polycc.geometry.halfplanes import is_bounded
+    # three planes of a corner plus one that does not close it: unbounded along (1,1,1)
+    n = np.array([[-1, 0, 0], [0, -1, 0], [0, 0, -1], [1, -1, 0] / np.sqrt(2)])
+    h = np.c_[n, np.ones(4)]
+    assert not is_bounded(n)
+    assert polytope_vertices(h, np.zeros(3)) is None
+    tet = np.array([[-1, 0, 0], [0, -1, 0], [0, 0, -1], np.ones(3) / np.sqrt(3)])
+    assert is_bounded(tet)
+    assert polytope_vertices(np.c_[tet, np.ones(4)], np.zeros(3) - 0.1) is not None
+
+
+def test_rate_budget_bounds_worst_case_time(tmp_path, scenes_dir):
+    assert main(_ring_args(tmp_path, 64, ["--rate-hz", "1000", "--cpu-share", "0.1"])) == 0
+    man = json.loads((tmp_path / "out64" / "manifest.json").read_text())
+    assert man["stats"]["modelled_us"]["worst_us"] <= 0.1 / 1000 * 1e6
+    assert man["stats"]["binding_budget"].split()[0] == "rate"
+
+
+def test_capped_normal_tables_fit_and_are_compared(built4):
+    """Candidates over (n, T): a capped table holds at most T normals, every candidate fits the
+    budget exactly by the layout formula, and the choice is the least conservative."""
+    from polycc.budget.select import data_bytes
+    from polycc.cover.family import CoverFamily
+    fam = CoverFamily.load(built4 / "out4")
+    budget = Budget(3 * 1024)
+    best, cands, binding = select(fam, budget, mc_samples=5000, normal_caps=(None, 24, 12))
+    assert any(c.max_normals is not None for c in cands), "a capped table was tried"
+    for c in cands:
+        assert c.bytes == data_bytes(c.n, c.n_planes, c.n_normals) <= budget.flash_bytes
+        if c.max_normals is not None:
+            assert c.n_normals <= c.max_normals
+    low = min(cands, key=lambda c: c.conservativeness)
+    tied = [c for c in cands if c.conservativeness <= low.conservativeness + low.conservativeness_ci]
+    assert best in tied and best.n == min(c.n for c in tied)  # least conservative up to MC ties, then fewest
+    assert binding.split()[0] in ("flash", "none")
+
+
+def test_per_polytope_plane_limit_is_enforced():
+    """Regression: a donut build at 8 KiB kept a 273-plane polytope; the layout allows 256."""
+    rng = np.random.default_rng(4)
+    polys = [random_hull(rng, n=80) for _ in range(2)]
+    red, _ = reduce_planes(polys, 10_000, per_polytope=20)
+    assert all(len(h) <= 20 for h in red)
+    for (h, v), r in zip(polys, red):
+        assert np.all(v @ r[:, :3].T <= r[:, 3] + 1e-12)
+
+
+def test_boxes_cannot_lose_a_plane():
+    """Every plane of a box is essential (dropping one opens it): the reduction refuses at once
+    instead of searching, and never returns an unbounded polytope."""
+    from polycc.geometry.halfplanes import axis_box
+
+    boxes = []
+    for i in range(5):
+        h = axis_box([i, 0, 0], [i + 0.5, 1, 1])
+        boxes.append((h, np.array([[x, y, z] for x in (i, i + 0.5) for y in (0, 1) for z in (0, 1)], float)))
+    assert reduce_planes(boxes, 29) is None  # 5 boxes need 30
+    red, added = reduce_planes(boxes, 30)
+    assert added == 0.0 and sum(len(h) for h in red) == 30
+
+
+def test_cost_cache_does_not_change_the_reduction():
+    rng = np.random.default_rng(7)
+    polys = [random_hull(rng, n=40) for _ in range(4)]
+    cache: dict = {}
+    plain = reduce_planes(polys, 40)
+    for _ in range(2):  # second pass hits the cache
+        cached = reduce_planes(polys, 40, cost_cache=cache)
+        assert len(cache) == 4
+        assert all(np.array_equal(a, b) for a, b in zip(plain[0], cached[0])) and plain[1] == cached[1]
+
+
+def test_record_cache_packs_identical_bytes():
+    from polycc.onboard.layout import pack_scene
+    from polycc.testing.synthetic import random_hull_polytopes
+
+    polys = random_hull_polytopes(np.random.default_rng(3), 12)
+    cache: dict = {}
+    ref = pack_scene(polys).to_bytes()
+    assert pack_scene(polys, record_cache=cache).to_bytes() == ref
+    assert pack_scene(polys[:6] + polys[6:], record_cache=cache).to_bytes() == ref
+    assert sum(1 for k in cache if k[0] != "needs_box") == 12  # one record per polytope
+
+
+def test_binding_text_names_a_full_budget():
+    """Regression: the 1.5M room filled 65,516 of 65,536 bytes and the summary said 'none',
+    because a larger n had fit with a coarser normal table."""
+    from types import SimpleNamespace as NS
+
+    from polycc.budget.select import binding_text
+
+    fam = NS(n_max=7866)
+    cand = lambda n, planes, cap, T=None: NS(n=n, n_planes=planes, dropped=0, max_normals=T,  # noqa: E731
+                                            caps={"flash": cap})
+    best = cand(1172, 9946, 9950, 256)
+    assert binding_text(fam, best, [best, cand(1241, 10300, 10310, 64)]).startswith("flash (full;")
+    assert binding_text(fam, best, [best]) == "flash"
+    roomy = cand(800, 5000, 9000)
+    assert binding_text(fam, roomy, [roomy, cand(1200, 8000, 9000)]).startswith("none (larger n fit")
+    whole = cand(7866, 5000, 9000)
+    assert binding_text(fam, whole, [whole]) == "none (the whole sub-cover fits)"

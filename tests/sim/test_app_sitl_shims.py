@@ -1,0 +1,193 @@
+"""The app's behaviour through the host shims: TOCs, parameters, setpoints, safe behaviour."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from polycc.onboard.app import STATUS_NAMES
+from polycc.sim.app_ffi import SRC, AppSim
+from polycc.codegen.header import write_outputs
+from polycc.geometry.halfplanes import axis_box
+
+LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1)]
+# PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09
+PARAMS = [("enable", 0x08), ("goalX", 0x06), ("goalY", 0x06), ("goalZ", 0x06), ("vmax", 0x06), ("beta", 0x06),
+          ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09)]
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory) -> AppSim:
+    d = tmp_path_factory.mktemp("scene")
+    write_outputs(d, [axis_box([0, 0, 0], [1, 1, 1]), axis_box([2, 0, 0], [3, 1, 2])], {"kappa": 100.0})
+    return AppSim(d / "polytopes.h")
+
+
+@pytest.fixture
+def fresh(app):
+    app.reset()
+    return app
+
+
+def _enable(app, goal=(4.0, 0.5, 0.5)):
+    for n, v in zip(("goalX", "goalY", "goalZ"), goal):
+        app.set_param("polycc", n, v)
+    app.set_param("polycc", "enable", 1)
+
+
+def header_defines(path: Path) -> dict[str, str]:
+    return dict(re.findall(r"#define\s+(POLYCC_\w+)\s+(\S+)", path.read_text()))
+
+
+def test_log_and_param_tocs(fresh):
+    logs = [e for e in fresh.log_toc() if e.group == "polycc"]
+    assert [(e.name, e.type) for e in logs] == LOG_VARS
+    pars = [e for e in fresh.param_toc() if e.group == "polycc"]
+    assert [(e.name, e.type) for e in pars] == PARAMS
+    assert [e.size for e in pars] == [1, 4, 4, 4, 4, 4, 4, 4, 2]
+    # The simulated estimate is in the log TOC like the firmware's core variables (LOG_CORE = 0x20).
+    est = {e.name: e for e in fresh.log_toc() if e.group == "stateEstimate"}
+    assert {"x", "y", "z"} <= set(est) and est["x"].type == 0x20 | 7
+    # Indices are the logVarId_t values, groups sorted by name.
+    toc = fresh.log_toc()
+    assert [e.index for e in toc] == list(range(len(toc)))
+    assert [e.group for e in toc] == sorted(e.group for e in toc)
+
+
+def test_defaults_and_status_codes_match_header(fresh):
+    d = header_defines(SRC / "polycc_app.h")
+    assert fresh.get_param("polycc", "rateHz") == int(d["POLYCC_APP_DEFAULT_RATE_HZ"].rstrip("u"))
+    assert fresh.get_param("polycc", "enable") == 0
+    assert math.isclose(fresh.get_param("polycc", "vmax"), float(d["POLYCC_APP_DEFAULT_VMAX"].rstrip("f")))
+    codes = {int(v.rstrip("u")): k for k, v in d.items() if k.startswith("POLYCC_STATUS_")}
+    assert sorted(codes) == sorted(STATUS_NAMES)
+    assert fresh.kappa == 100.0 and fresh.n_polys == 2
+
+
+def test_disabled_sends_nothing(fresh):
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    for k in range(10):
+        assert fresh.tick(2 * k) == 2
+    assert fresh.commander().count == 0
+    assert fresh.get_log("polycc", "status") == 0
+
+
+def test_enabled_streams_world_velocity_setpoints(fresh):
+    _enable(fresh)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    for k in range(5):
+        assert fresh.tick(2 * k, usec=2000 * k, section_us=17) == 2
+        rec = fresh.commander()
+        assert rec.count == k + 1 and rec.tick == 2 * k
+    assert rec.priority == 2  # COMMANDER_PRIORITY_CRTP
+    assert rec.modes[:3] == (2, 2, 2) and rec.modes[5] == 2  # modeVelocity for x, y, z and yaw (rate)
+    assert rec.modes[3:5] == (0, 0) and not rec.velocity_body and rec.yaw_rate == 0.0
+    assert rec.velocity[0] > 0.0  # towards the goal at +x
+    assert fresh.get_log("polycc", "status") == 1 and fresh.get_log("polycc", "evalUs") == 17
+    for n, v in zip(("ux", "uy", "uz"), rec.velocity):
+        assert fresh.get_log("polycc", n) == v
+
+
+@pytest.mark.parametrize("rate,period", [(500, 2), (250, 4), (1000, 1), (167, 6), (100, 10), (1, 100), (0, 100)])
+def test_rate_param_sets_period_and_keeps_watchdog_fed(fresh, rate, period):
+    _enable(fresh)
+    fresh.set_param("polycc", "rateHz", rate)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    assert fresh.tick(0) == period
+    assert period <= 100  # setpoints at least every 100 ms: the 500 ms watchdog never fires
+
+
+def test_disable_relaxes_priority_once(fresh):
+    _enable(fresh)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    fresh.tick(0)
+    fresh.set_param("polycc", "enable", 0)
+    for k in range(1, 5):
+        fresh.tick(2 * k)
+    rec = fresh.commander()
+    assert rec.relax_count == 1 and rec.active_priority == 1 and rec.count == 1
+    assert fresh.get_log("polycc", "status") == 0
+
+
+@pytest.mark.parametrize("case", ["nan", "inf", "far", "variance", "inside", "bad_param"])
+def test_unsafe_inputs_hover_in_place(fresh, case):
+    _enable(fresh)
+    x = (-1.0, 0.5, 0.5)
+    expect = {"nan": 3, "inf": 3, "far": 3, "variance": 3, "inside": 5, "bad_param": 6}[case]
+    if case == "nan":
+        x = (math.nan, 0.5, 0.5)
+    elif case == "inf":
+        x = (0.0, math.inf, 0.5)
+    elif case == "far":
+        x = (0.0, 0.0, 2000.0)
+    elif case == "variance":
+        fresh.set_position_variance((0.02, 1e-4, 1e-4))
+    elif case == "inside":
+        x = (0.3, 0.45, 0.8)  # inside the first box, off its centre (where grad psi = 0)
+    elif case == "bad_param":
+        fresh.set_param("polycc", "vmax", 0.0)
+    fresh.set_estimate(x)
+    fresh.tick(0)
+    rec = fresh.commander()
+    assert rec.count == 1 and rec.velocity == (0.0, 0.0, 0.0) and rec.modes[:3] == (2, 2, 2)
+    assert fresh.get_log("polycc", "status") == expect
+    assert fresh.get_log("polycc", "active") == 0
+
+
+def test_stale_estimate_hovers_until_it_moves(fresh):
+    _enable(fresh)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    statuses = []
+    for k in range(200):
+        fresh.tick(2 * k)
+        statuses.append(fresh.get_log("polycc", "status"))
+    stale_from = statuses.index(4)
+    assert stale_from * 2 == 250  # POLYCC_APP_STALE_MS of identical bits
+    assert all(s == 4 for s in statuses[stale_from:]) and fresh.commander().velocity == (0.0, 0.0, 0.0)
+    fresh.set_estimate((-1.0, 0.5, 0.50001))
+    fresh.tick(400)
+    assert fresh.get_log("polycc", "status") == 1
+
+
+def test_missing_estimator_variables(app):
+    app.lib.shim_reset()
+    app.lib.shim_set_kalman_present(0)  # another estimator: the variance check is skipped
+    app.lib.polycc_app_init()
+    _enable(app)
+    app.set_position_variance((5.0, 5.0, 5.0))
+    app.set_estimate((-1.0, 0.5, 0.5))
+    app.tick(0)
+    assert app.get_log("polycc", "status") == 1
+    app.lib.shim_reset()
+    app.lib.shim_set_estimate_present(0)
+    app.lib.polycc_app_init()
+    _enable(app)
+    app.tick(0)
+    assert app.get_log("polycc", "status") == 2 and app.commander().velocity == (0.0, 0.0, 0.0)
+    app.reset()
+
+
+def test_param_writes_convert_types(fresh):
+    fresh.set_param("polycc", "rateHz", 70000)  # clamped to uint16
+    assert fresh.get_param("polycc", "rateHz") == 65535
+    fresh.set_param("polycc", "enable", 2.7)
+    assert fresh.get_param("polycc", "enable") == 2
+    fresh.set_param("polycc", "vmax", 0.1)
+    assert fresh.get_param("polycc", "vmax") == float(np.float32(0.1))
+    with pytest.raises(Exception, match="no parameter"):
+        fresh.set_param("polycc", "nope", 1)
+
+
+def test_broken_header_gives_a_one_line_error(tmp_path):
+    """A header that does not compile with the app is reported with the compiler's first error."""
+    from polycc.errors import PolyccError
+
+    write_outputs(tmp_path, [axis_box([0, 0, 0], [1, 1, 1])], {"kappa": 100.0})
+    h = tmp_path / "polytopes.h"
+    h.write_text(h.read_text().replace("#define POLYCC_SCENE_N_POLYS", "#define POLYCC_SCENE_N_POLYS oops +"))
+    with pytest.raises(PolyccError, match=r"building the host app with .*polytopes.h failed: .*error"):
+        AppSim(h)
