@@ -13,7 +13,7 @@ PYTEST_MARK := -m "not slow"
 endif
 PYTEST_ARGS ?= -n 2
 
-.PHONY: venv demo test test-all bench clean
+.PHONY: venv demo test test-all lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -29,10 +29,14 @@ demo: $(STAMP)
 	$(BIN)/polycc sim $(OUT) --scene $(OUT)/arena.ply --dynamics crazyflie
 
 test: $(STAMP)
+	$(BIN)/ruff check polycc tests bench tools
 	$(BIN)/python -m pytest $(PYTEST_MARK) $(PYTEST_ARGS)
 
 test-all: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+lint: $(STAMP)
+	$(BIN)/ruff check polycc tests bench tools
 
 bench: $(STAMP)
 	$(BIN)/python bench/run_all.py

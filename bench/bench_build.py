@@ -30,8 +30,8 @@ PLANE_BYTES_PAPER = 16
 
 
 def arena_ply(name: str) -> Path:
-    from polycc.demo.arenas import capture_arena, tiled_room
     from polycc.demo.arena import make_demo_arena
+    from polycc.demo.arenas import capture_arena, tiled_room
     from polycc.scene.writers import write_gaussian_ply
 
     path = CACHE / ("tiled_room_1500000.ply" if name == "tiled_room" else f"{name}.ply")  # as bench_occupancy
@@ -138,7 +138,8 @@ def main() -> None:
 
     print_table(
         "polycc build vs paper-faithful storage at equal bytes (float32 n, d per qhull triangle facet, no "
-        "reduction, largest n that fits), g = 5 cm; 'paper pipeline' also uses the paper's cover (no boxes, paper cost)",
+        "reduction, largest n that fits), g = 5 cm; 'paper pipeline' also uses the paper's cover (no boxes, paper "
+        "cost)",
         ["scene", "KiB", "n", "planes", "B/plane", "cons. (95%)", "wasted m^3", "typ/worst us", "binding",
          "paper n", "paper cons.", "wasted ratio", "paper KiB at our n", "pipeline n", "pipeline cons.", "ratio"],
         [[r["scene"].replace("_arena", ""), r["budget_kb"], r["n"], r["halfplanes"], round(r["bytes_per_halfplane"], 2),

@@ -31,8 +31,8 @@ G = 0.05
 
 
 def scenes(quick: bool) -> dict:
-    from polycc.demo.arenas import capture_arena, load_capture
     from polycc.demo.arena import make_demo_arena
+    from polycc.demo.arenas import capture_arena, load_capture
 
     out = {"demo arena": make_demo_arena(0)}
     if not quick:

@@ -26,9 +26,10 @@ streamed from flash can add up to 5 cycles per 16-byte line, reported separately
 Workloads: synthetic rooms with n in {10, 30, 50, 100, 150} random-hull polytopes (unique
 normals), the 150-polytope room padded to 3720 half-planes (what 64 KiB held in format 2),
 the same padded to fill 64 KiB in format 3, and 150 hulls of voxel corners (lattice normals,
-table capped at 512) for the storage of a PolyMerge-like cover.  Typical: positions along a closed-loop flight (host kernel, dt = 10 ms) from
-a start to a goal across the room.  Worst: the same polytopes moved onto a shell around the
-query point so that every polytope lies within the culling distance (none is culled).
+table capped at 512) for the storage of a PolyMerge-like cover.  Typical: positions along a
+closed-loop flight (host kernel, dt = 10 ms) from a start to a goal across the room.  Worst: the
+same polytopes moved onto a shell around the query point so that every polytope lies within the
+culling distance (none is culled).
 Baseline in the same run: bench/bench_kernel_naive.c (every half-plane, libm expf/logf,
 plain log-sum-exp).
 
@@ -52,11 +53,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from polycc.sim import kernel_arm  # noqa: E402
-from polycc.sim.kernel_ffi import OUT_DTYPE, HostScene, step_batch  # noqa: E402
+from polycc.geometry.halfplanes import hull_halfplanes  # noqa: E402
 from polycc.onboard import barrier as B  # noqa: E402
 from polycc.onboard.layout import SCENE_FORMAT, PackedScene, pack_scene  # noqa: E402
-from polycc.geometry.halfplanes import hull_halfplanes  # noqa: E402
+from polycc.sim import kernel_arm  # noqa: E402
+from polycc.sim.kernel_ffi import OUT_DTYPE, HostScene, step_batch  # noqa: E402
 from polycc.testing.synthetic import pad_to_planes, random_hull_polytopes  # noqa: E402
 
 MHZ = 168.0
@@ -69,7 +70,8 @@ BENCH_ELF = "kernel_bench"
 
 
 def build_bench() -> Path:
-    srcs = [REPO / "bench" / "bench_kernel_naive.c", kernel_arm.ARM_DIR / "startup.c", kernel_arm.ARM_DIR / "semihost.c"]
+    srcs = [REPO / "bench" / "bench_kernel_naive.c", kernel_arm.ARM_DIR / "startup.c",
+            kernel_arm.ARM_DIR / "semihost.c"]
     return kernel_arm.build(BENCH_ELF, srcs, extra_headers=[kernel_arm.ARM_DIR / "semihost.h"], libs=["-lm"])
 
 
@@ -115,7 +117,8 @@ class CortexM4Model:
         ins = next(self.md.disasm(code, addr, 1))
         mn = ins.mnemonic.split(".")[0]
         base = mn.rstrip("s") if mn not in ("vabs", "vmrs", "vmsr", "bls", "blx", "bx") else mn
-        for cond in ("eq", "ne", "cs", "hs", "cc", "lo", "mi", "pl", "vs", "vc", "hi", "ls", "ge", "lt", "gt", "le", "al"):
+        for cond in ("eq", "ne", "cs", "hs", "cc", "lo", "mi", "pl", "vs", "vc", "hi", "ls", "ge", "lt", "gt", "le",
+                     "al"):
             if len(base) > 2 and base.endswith(cond) and base[:-2] in ("b", "bx", "bl", "blx"):
                 base = base[:-2]
         ops = ins.op_str
@@ -413,7 +416,8 @@ def table(res: dict) -> str:
         return f"{v[0]:.1f}-{v[1]:.1f}"
 
     lines = [f"Cortex-M4F @ {res['mhz']:.0f} MHz, kappa=100 (modelled cycle range low-high; see bench_kernel.py)",
-             "| scene | polys | half-planes | normals | flash B | B/half-plane (fmt 2) | typical instr | typical us | typical max us | worst instr |"
+             "| scene | polys | half-planes | normals | flash B | B/half-plane (fmt 2) | typical instr | typical us | "
+             "typical max us | worst instr |"
              " worst us (polys evaluated) | naive instr | naive us | speed-up (typical) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
@@ -422,7 +426,8 @@ def table(res: dict) -> str:
             f" {r['bytes_per_plane']:.2f} ({r['format2_bytes_per_plane']:.2f}) | {r['typical_instr']:.0f} |"
             f" {rng(r['typical_us'])} | {rng(r['typical_max_us'])} | {r['worst_instr']:.0f} |"
             f" {rng(r['worst_us'])} ({r['worst_polys_evaluated']}) |"
-            f" {r['naive_instr']:.0f} | {rng(r['naive_us'])} | {r['speedup_typical'][0]:.0f}x-{r['speedup_typical'][1]:.0f}x |")
+            f" {r['naive_instr']:.0f} | {rng(r['naive_us'])} | "
+            f"{r['speedup_typical'][0]:.0f}x-{r['speedup_typical'][1]:.0f}x |")
     s = res["kernel_size"]
     lines.append(f"kernel stack (worst, -fstack-usage): {res['stack_bytes']} B ({' -> '.join(res['stack_chain'])}); "
                  f"arm-none-eabi-size polycc_kernel.o: text={s['text']} data={s['data']} bss={s['bss']}")

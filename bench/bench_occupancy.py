@@ -98,7 +98,8 @@ def main() -> None:
     rows, results = [], []
     targets = {0.05: 20.0, 0.02: 60.0}
     for g in (0.05, 0.02):
-        out = subprocess.run([sys.executable, __file__, "--child", ply, str(g), "1"], check=True, capture_output=True, text=True)
+        out = subprocess.run([sys.executable, __file__, "--child", ply, str(g), "1"], check=True, capture_output=True,
+                             text=True)
         r = json.loads(out.stdout.strip().splitlines()[-1])
         r["target_s"] = targets[g]
         results.append(r)
@@ -109,7 +110,8 @@ def main() -> None:
         ])
     print_table(
         "load + exact occupancy, tiled room (naive AABB voxelizer as baseline)",
-        ["g", "splats", "load s", "voxelize s", "total s", "target s", "splats/s", "voxels (exact)", "voxels (AABB)", "AABB/exact", "peak RSS GB"],
+        ["g", "splats", "load s", "voxelize s", "total s", "target s", "splats/s", "voxels (exact)",
+         "voxels (AABB)", "AABB/exact", "peak RSS GB"],
         rows,
     )
     write_json("occupancy", {"scene": ply, "results": results})

@@ -47,8 +47,8 @@ GAP_VMAX = (0.25, 0.5, 1.0, 1.5, 2.0)
 
 @lru_cache(maxsize=2)
 def arena(name: str):
-    from polycc.demo.arenas import capture_arena
     from polycc.demo.arena import make_demo_arena
+    from polycc.demo.arenas import capture_arena
 
     if name == "demo":
         return make_demo_arena(0)
@@ -143,7 +143,8 @@ def main() -> int:
                              "pairs": pairs[a], "header": headers[a, n]})
     gap_n = ns[-1]
     gap_jobs = []
-    for dyn, vs, pp in (("crazyflie", GAP_VMAX, pairs["demo"]), ("quadrotor", (1.0, 2.0), pairs["demo"][: args.quad_pairs])):
+    for dyn, vs, pp in (("crazyflie", GAP_VMAX, pairs["demo"]), ("quadrotor", (1.0, 2.0),
+                                                                 pairs["demo"][: args.quad_pairs])):
         for v in vs:
             for brake in (False, True):
                 gap_jobs.append({"arena": "demo", "n": gap_n, "dynamics": dyn, "rate_hz": PAPER_RATES[gap_n], "vmax": v,
@@ -152,7 +153,8 @@ def main() -> int:
     with ProcessPoolExecutor(max_workers=args.jobs) as ex:
         for r in ex.map(fly_batch, jobs + gap_jobs):
             res.append(r)
-            print(f"[{len(res)}/{len(jobs) + len(gap_jobs)}] {r['arena']} {r['dynamics']} n={r['n']} vmax={r['vmax']:g} "
+            print(f"[{len(res)}/{len(jobs) + len(gap_jobs)}] {r['arena']} {r['dynamics']} n={r['n']} "
+                  f"vmax={r['vmax']:g} "
                   f"brake={r.get('brake', True)}: success {r['success_rate']:.2f}, min clearance "
                   f"{r['min_clearance_m']:.4f} m, collisions {r['collisions']} ({r['time_s']:.0f} s)", flush=True)
     main_res, gap_res = res[: len(jobs)], res[len(jobs):]

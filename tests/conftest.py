@@ -13,7 +13,8 @@ from polycc.testing.files import SCENES  # noqa: E402 - ../shared/scenes beside 
 try:
     from hypothesis import HealthCheck, settings
 
-    settings.register_profile("polycc", deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=bool(os.environ.get("CI")))
+    settings.register_profile("polycc", deadline=None, suppress_health_check=[HealthCheck.too_slow],
+                              derandomize=bool(os.environ.get("CI")))
     settings.load_profile("polycc")
 except ImportError:  # pragma: no cover
     pass

@@ -3,7 +3,7 @@
  * go-to-goal controller, flying world-frame velocity setpoints.
  *
  * The only polycc C file that includes firmware headers.  The host SITL compiles this very
- * file against declaration shims (host_sim/shims/) with the same flags.
+ * file against declaration shims (polycc/sim/shims/) with the same flags.
  *
  * Each tick (polycc_app_tick, at param polycc.rateHz, default 500 Hz):
  *   1. reads stateEstimate.x/y/z through the log API (and kalman.varX/Y/Z when present);

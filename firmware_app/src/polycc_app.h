@@ -3,7 +3,7 @@
  *
  * appMain() (polycc_app.c) is polycc_app_init() followed by
  *     forever { period = polycc_app_tick(); vTaskDelayUntil(&last, period); }
- * The host SITL (host_sim/) compiles the same polycc_app.c against firmware API shims and
+ * The host SITL (polycc/sim/) compiles the same polycc_app.c against firmware API shims and
  * calls polycc_app_init() / polycc_app_tick() itself, one tick at a time.
  *
  * No firmware headers here: this file is shared with the host build.

@@ -1,7 +1,7 @@
 /*
  * polycc_kernel.c -- see polycc_kernel.h.  Build with -ffp-contract=off (required).
  *
- * Every float32 operation below is mirrored, in the same order, by polycc/barrier.py;
+ * Every float32 operation below is mirrored, in the same order, by polycc/onboard/barrier.py;
  * change both together.  The derivations are in docs/barrier.md.
  */
 #include "polycc_kernel.h"

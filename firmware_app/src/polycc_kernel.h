@@ -5,7 +5,7 @@
  * Portable C99, float32 only, no firmware headers, no libm exp/log.
  *
  * REQUIRED COMPILER FLAG: -ffp-contract=off (no fused multiply-add).  The Python reference
- * (polycc/barrier.py) reproduces every float32 operation of this file in the same order;
+ * (polycc/onboard/barrier.py) reproduces every float32 operation of this file in the same order;
  * fused operations would change the rounding and break bit-exactness.  sqrtf() is used and
  * is correctly rounded everywhere; add -fno-math-errno so it compiles to one VSQRT.
  *

@@ -2,7 +2,7 @@
  * polycc_scene_layout.h -- the scene data layout read by the on-board barrier kernel.
  *
  * The code generator (polycc codegen) instantiates this layout as sized `static const`
- * arrays plus one root `polycc_scene_t`; `polycc/scene_layout.py` builds and decodes
+ * arrays plus one root `polycc_scene_t`; `polycc/onboard/layout.py` builds and decodes
  * exactly these bytes.  Portable C99, no firmware headers.
  *
  * Format 3 (POLYCC_SCENE_FORMAT == 3): quantized, little-endian, 4-byte aligned.
@@ -81,7 +81,7 @@
 
 #define POLYCC_SCENE_FORMAT 3u
 
-/* Byte sizes of the records, checked by polycc/scene_layout.py and the tests.  The root struct
+/* Byte sizes of the records, checked by polycc/onboard/layout.py and the tests.  The root struct
  * is POLYCC_ROOT_BYTES on a 32-bit target (8 words + 4 pointers). */
 #define POLYCC_NORMAL_BYTES 12u
 #define POLYCC_PLANE_BYTES 4u

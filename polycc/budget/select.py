@@ -32,12 +32,20 @@ from typing import Callable
 
 import numpy as np
 
+from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
-from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
 from polycc.geometry.halfplanes import polytope_vertices
-from polycc.onboard.layout import DEFAULT_NORMAL_GRID, MAX_POLY_PLANES, PLANE_BYTES, PackedScene, layout_bytes, n_clusters_for, pack_scene
 from polycc.geometry.union_volume import in_voxels, union_waste
+from polycc.onboard.layout import (
+    DEFAULT_NORMAL_GRID,
+    MAX_POLY_PLANES,
+    PLANE_BYTES,
+    PackedScene,
+    layout_bytes,
+    n_clusters_for,
+    pack_scene,
+)
 
 REDUCTION_FACTORS = (1.5, 2.0, 3.0, 4.0, 6.0)  # candidate n as multiples of the no-reduction n
 CURVE_FACTORS = (0.5, 0.25, 0.1)  # smaller n also evaluated, for the trade-off curve
@@ -187,7 +195,8 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
         return None
     # The byte model is exact and the table can only shrink (reduction removes planes, merging
     # removes duplicates, unused entries are dropped).
-    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals), "byte model out of date"
+    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals), \
+        "byte model out of date"
     # (+6: pack_scene may add the axis normals to close an over-elongated polytope)
     assert packed.n_normals <= t_eff + 6 or max_normals is not None and packed.n_normals <= max_normals
     assert packed.flash_bytes() <= budget.flash_bytes
@@ -343,7 +352,8 @@ def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
     need = data_bytes(1, need_planes, need_planes)
     parts = [f"even one polytope needs {need_planes} half-planes = {need} bytes ({need / 1024:.3f} KiB)"]
     if budget.flash_bytes < need:
-        parts.append(f"--flash-kb {budget.flash_bytes / 1024:g} is too small: use --flash-kb {math.ceil(need / 1024 * 100) / 100:g} or more")
+        parts.append(f"--flash-kb {budget.flash_bytes / 1024:g} is too small: use "
+                     f"--flash-kb {math.ceil(need / 1024 * 100) / 100:g} or more")
     if budget.max_halfplanes is not None and budget.max_halfplanes < need_planes:
         parts.append(f"--max-halfplanes {budget.max_halfplanes} is too small: use {need_planes} or more")
     if budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:

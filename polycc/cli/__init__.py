@@ -10,9 +10,9 @@ import argparse
 import importlib
 import sys
 
-from polycc.version import __version__
 from polycc.cli.argtypes import OneLineParser, main_argv
 from polycc.errors import PolyccError
+from polycc.version import __version__
 
 # Order is the order shown by `polycc --help`.
 COMMAND_MODULES = [

@@ -46,7 +46,8 @@ def register(sub) -> None:
     p.add_argument("--cpu-share", type=number(float, 0.0, 1.0, lo_open=True), default=cycle_model.DEFAULT_CPU_SHARE,
                    metavar="F", help="fraction of the CPU the filter may use with --rate-hz, in (0, 1] "
                                      "(default: %(default)s)")
-    p.add_argument("--kappa", type=number(float, float(KAPPA_MIN), float(KAPPA_MAX), unit="1/m"), default=100.0, metavar="K",
+    p.add_argument("--kappa", type=number(float, float(KAPPA_MIN), float(KAPPA_MAX), unit="1/m"), default=100.0,
+                   metavar="K",
                    help="soft-min/soft-max sharpness recorded in the header, 1/m, in [1, 10000] (the kernel's "
                         "range; outside it the app only hovers) (default: %(default)s, as in the paper)")
     p.add_argument("--neighborhood", type=number(int, 0, 4, unit="voxels"), default=1, metavar="B",
@@ -56,7 +57,8 @@ def register(sub) -> None:
                         "candidates, so the sub-cover wastes nothing (--no-boxes: the paper's clusters only) "
                         "(default: on)")
     p.add_argument("--merge-cost", choices=COVER_COSTS, default=DEFAULT_MERGE_COST,
-                   help="merge cost: 'paper' = W of the union (Eq. 13), 'delta' = the free volume a merge adds, 'best' = both, keep the better; see `polycc cover --help` (default: %(default)s)")
+                   help="merge cost: 'paper' = W of the union (Eq. 13), 'delta' = the free volume a merge adds, 'best' "
+                        "= both, keep the better; see `polycc cover --help` (default: %(default)s)")
     p.add_argument("--mc-samples", type=number(int, MC_SAMPLES_MIN, 100_000_000), default=100_000, metavar="S",
                    help=f"Monte Carlo samples per candidate for conservativeness, at least {MC_SAMPLES_MIN:,} "
                         "(default: %(default)s)")
@@ -87,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
         ("bytes / budget", f"{best.bytes:,} / {r.manifest['stats']['budget_bytes']:,} "
                            f"({best.bytes / best.n_planes:.1f} B per half-plane)"),
         ("binding budget", r.binding),
-        ("conservativeness Vol(union)/Vol(V+)", f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% CI)"),
+        ("conservativeness Vol(union)/Vol(V+)", f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% "
+                                                "CI)"),
         ("modelled on-board time @168 MHz", f"typical {us['typical_us']:.0f} us, worst {us['worst_us']:.0f} us"),
         ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"
                                             + ("" if args.rate_hz else "  (bound it with --rate-hz)")),

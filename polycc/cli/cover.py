@@ -10,19 +10,19 @@ from pathlib import Path
 import numpy as np
 
 from polycc.cli.argtypes import number
+from polycc.cli.console import console, progress_bar, summary_table
 from polycc.cli.scene_args import (
     add_scene_options,
     load_scene_and_occupancy,
     output_dir,
     resolve_scene_settings,
 )
-from polycc.cli.console import console, progress_bar, summary_table
 from polycc.cover.build import COVER_COSTS, DEFAULT_MERGE_COST, build_cover, conservativeness
-from polycc.geometry.union_volume import in_voxels
 from polycc.cover.family import CoverFamily
-from polycc.errors import PolyccError
-from polycc.occupancy.floaters import floater_text
 from polycc.cover.merge import MERGE_COSTS
+from polycc.errors import PolyccError
+from polycc.geometry.union_volume import in_voxels
+from polycc.occupancy.floaters import floater_text
 
 PAPER_LEVELS = (10, 30, 50, 100, 150)
 
@@ -46,7 +46,8 @@ def register(sub) -> None:
     c.add_argument("--merge-cost", choices=COVER_COSTS, default=DEFAULT_MERGE_COST,
                    help="pair cost for merging: 'paper' = W(A u B) (Eq. 13); 'delta' = W(A u B) - W(A) - W(B), "
                         "the free volume a merge adds; 'best' = run both (in parallel) and keep the family with the "
-                        "lower measured conservativeness at n = 10..150 (default: %(default)s; see bench/bench_cover.py)")
+                        "lower measured conservativeness at n = 10..150 (default: %(default)s; see "
+                        "bench/bench_cover.py)")
     c.add_argument("--boxes", action=argparse.BooleanOptionalAction, default=True,
                    help="add one exact all-occupied box per voxel whose cluster wastes volume to the set-cover "
                         "candidates, so the sub-cover wastes nothing (--no-boxes: the paper's clusters only) "
@@ -106,7 +107,8 @@ def curve_levels(N: int) -> list[int]:
 def tradeoff_curve(fam: CoverFamily, samples: int, seed: int = 0) -> list[tuple[int, float, float]]:
     """[(n, conservativeness, ci95)] over :func:`curve_levels`."""
     occupied = in_voxels(fam.grid_indices, fam.origin, fam.voxel_size)
-    return [(int(n), *conservativeness(fam, n, samples, seed + k, occupied)) for k, n in enumerate(curve_levels(fam.n_max))]
+    return [(int(n), *conservativeness(fam, n, samples, seed + k, occupied)) for k,
+            n in enumerate(curve_levels(fam.n_max))]
 
 
 def run(args: argparse.Namespace) -> int:

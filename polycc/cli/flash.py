@@ -45,7 +45,8 @@ def register(subparsers) -> None:
     p.add_argument("--jobs", "-j", type=number(int, 1, 256), default=os.cpu_count() or 1, metavar="N",
                    help="parallel make jobs (default: the number of CPUs, %(default)s here)")
     p.add_argument("--no-flash", action="store_true", help="build and report sizes, do not flash (default: flash)")
-    p.add_argument("--dry-run", action="store_true", help="check the toolchain, firmware tree and radio, print every step, run none (default: off)")
+    p.add_argument("--dry-run", action="store_true", help="check the toolchain, firmware tree and radio, print every "
+                                                          "step, run none (default: off)")
     p.set_defaults(func=run)
 
 def run(args) -> int:
@@ -88,10 +89,14 @@ def run(args) -> int:
         if s.cmd[0] == "arm-none-eabi-size":
             sz = firmware_sizes(app / "build" / "cf2.elf")
             objs = {o.stem: size_report(o) for o in sorted((app / "src").glob("polycc_*.o"))}
-            rows = [("firmware flash (.text + .data)", f"{sz['flash']:,} B of {FLASH_BYTES:,} ({100 * sz['flash'] / FLASH_BYTES:.0f}%)"),
-                    ("firmware RAM (.data + .bss)", f"{sz['ram']:,} B of {RAM_BYTES:,} ({100 * sz['ram'] / RAM_BYTES:.0f}%)"),
-                    ("firmware CCM (.ccmbss)", f"{sz['ccm']:,} B of {CCM_BYTES:,} ({100 * sz['ccm'] / CCM_BYTES:.0f}%)")]
-            rows += [(f"{k}.o text / data / bss", f"{v['text']:,} / {v['data']:,} / {v['bss']:,} B") for k, v in objs.items()]
+            rows = [("firmware flash (.text + "
+                     ".data)", f"{sz['flash']:,} B of {FLASH_BYTES:,} ({100 * sz['flash'] / FLASH_BYTES:.0f}%)"),
+                    ("firmware RAM (.data + "
+                     ".bss)", f"{sz['ram']:,} B of {RAM_BYTES:,} ({100 * sz['ram'] / RAM_BYTES:.0f}%)"),
+                    ("firmware CCM "
+                     "(.ccmbss)", f"{sz['ccm']:,} B of {CCM_BYTES:,} ({100 * sz['ccm'] / CCM_BYTES:.0f}%)")]
+            rows += [(f"{k}.o text / data / bss", f"{v['text']:,} / {v['data']:,} / {v['bss']:,} "
+                                                  "B") for k, v in objs.items()]
             console.print(summary_table("polycc flash: sizes", rows))
             continue
         r = subprocess.run(s.cmd, cwd=s.cwd, env={**os.environ, "PWD": str(s.cwd)})

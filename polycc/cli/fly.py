@@ -86,7 +86,8 @@ def run(args) -> int:
     except KeyboardInterrupt as e:
         log = getattr(e, "flight_log", None)
         if log is not None:
-            console.print(f"interrupted: app disabled, stop setpoint sent; log: {log.write_csv(args.csv)}", soft_wrap=True)
+            console.print("interrupted: app disabled, stop setpoint sent; log: "
+                          f"{log.write_csv(args.csv)}", soft_wrap=True)
         raise
     console.print()
     path = log.write_csv(args.csv)

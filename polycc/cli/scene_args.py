@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.cli.argtypes import NEGATIVE_VALUE_OPTIONS, number, numbers
 from polycc import pipeline
+from polycc.cli.argtypes import NEGATIVE_VALUE_OPTIONS, number, numbers
 from polycc.cli.console import StageProgress, console, summary_table
 from polycc.errors import PolyccError
 from polycc.occupancy.grid import OccupancyGrid
@@ -113,11 +113,13 @@ def output_dir(path: str | Path) -> Path:
     """The output folder ``-o``, created; a one-line error if it is a file or cannot be made."""
     out = Path(path)
     if out.exists() and not out.is_dir():
-        raise PolyccError(f"-o {out}: exists and is a file, not a folder; pass a folder path (it is created if missing)")
+        raise PolyccError(f"-o {out}: exists and is a file, not a folder; pass a folder path (it is created if "
+                          "missing)")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise PolyccError(f"-o {out}: cannot create the folder ({exc.strerror or exc}); choose a writable path") from None
+        raise PolyccError(f"-o {out}: cannot create the folder ({exc.strerror or exc}); choose a writable "
+                          "path") from None
     return out
 
 

@@ -41,26 +41,33 @@ def register(subparsers) -> None:
     p.add_argument("--scene", metavar="SCENE",
                    help="the splat scene (.ply/.splat) as ground truth; default: the path stored in OUT/manifest.json")
     add_point_option(p, "--start",
-                     help="start position, m (default: the scene's sidecar .json 'start', as `polycc demo-scene` writes)")
+                     help="start position, m (default: the scene's sidecar .json 'start', as `polycc demo-scene` "
+                          "writes)")
     add_point_option(p, "--goal", help="goal position, m (default: the scene's sidecar .json 'goal')")
     p.add_argument("--dynamics", choices=("integrator", "crazyflie", "quadrotor"), default="integrator",
                    help="vehicle model: the paper's single integrator; the Crazyflie 2.1-like velocity tracking model "
                         "(tilt/thrust limits, attitude lag, 20 ms estimator delay); or the full rigid-body quadrotor "
                         "under a Crazyflie-like PID cascade (slowest) (default: %(default)s)")
     p.add_argument("--trials", type=number(int, 1, 100_000), default=1, metavar="N",
-                   help="flights from --start to --goal; trials after the first start up to --jitter m away (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed for start jitter and random pairs (default: %(default)s)")
+                   help="flights from --start to --goal; trials after the first start up to --jitter m away (default: "
+                        "%(default)s)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed for start jitter and random pairs "
+                                                                    "(default: %(default)s)")
     p.add_argument("--jitter", type=number(float, 0.0, 10.0, unit="m"), default=0.05, metavar="M",
                    help="largest start offset (m) of trials 2..N, per axis (default: %(default)s)")
     p.add_argument("--random-pairs", type=number(int, 0, 100_000), default=0, metavar="N",
                    help="instead of --start/--goal: the paper's protocol, N random start/goal pairs in free space "
-                        "(psi >= 0.05 m) inside the splats' 0.5-99.5 percentile box, z >= 0.15 m; 0 = off (default: %(default)s)")
+                        "(psi >= 0.05 m) inside the splats' 0.5-99.5 percentile box, z >= 0.15 m; 0 = off (default: "
+                        "%(default)s)")
     p.add_argument("--min-distance", type=number(float, 0.0, 1000.0, unit="m"), default=2.0, metavar="D",
                    help="random pairs: smallest start-goal distance, m (default: %(default)s)")
     p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=500, metavar="HZ",
-                   help="app loop rate (param polycc.rateHz, 10..1000); the paper's simulations used 100 (dt = 0.01 s) (default: %(default)s)")
-    p.add_argument("--vmax", type=number(float, 0.0, 10.0, lo_open=True, unit="m/s"), default=0.5, metavar="V", help="speed limit (param polycc.vmax), m/s (default: %(default)s)")
-    p.add_argument("--beta", type=number(float, 0.0, 1e6, lo_open=True, unit="1/s"), default=1.0, metavar="B", help="CBF gain (param polycc.beta), 1/s (default: %(default)s)")
+                   help="app loop rate (param polycc.rateHz, 10..1000); the paper's simulations used 100 (dt = 0.01 s) "
+                        "(default: %(default)s)")
+    p.add_argument("--vmax", type=number(float, 0.0, 10.0, lo_open=True, unit="m/s"), default=0.5, metavar="V",
+                   help="speed limit (param polycc.vmax), m/s (default: %(default)s)")
+    p.add_argument("--beta", type=number(float, 0.0, 1e6, lo_open=True, unit="1/s"), default=1.0, metavar="B",
+                   help="CBF gain (param polycc.beta), 1/s (default: %(default)s)")
     p.add_argument("--clf-gain", type=number(float, 0.0, 1e6, unit="1/s"), default=2.0, metavar="C",
                    help="CLF decay rate (param polycc.clfGain), 1/s: u_nom = -(C/2)(x - goal) (default: %(default)s)")
     p.add_argument("--radius", type=number(float, 0.0, 10.0, unit="m"), default=0.1, metavar="R",
@@ -110,10 +117,10 @@ def _sidecar_flight(scene_path: str) -> tuple[np.ndarray, np.ndarray] | None:
 def run(args) -> int:
     from rich.table import Table
 
+    from polycc.cli.console import console, progress_bar
     from polycc.onboard.layout import stored_vertices
     from polycc.report.flights import plot_trajectories
     from polycc.sim.sitl import FlightConfig, Simulator, random_pairs, sampling_box
-    from polycc.cli.console import console, progress_bar
 
     out = Path(args.out)
     header = out / "polytopes.h"
@@ -148,8 +155,10 @@ def run(args) -> int:
             trials.append(sim.fly(s, g, args.dynamics, cfg, delay_s=delay))
             update(i + 1)
 
-    table = Table(title=f"polycc sim: {args.dynamics}, {args.rate_hz} Hz, vmax {args.vmax:g} m/s, r = {args.radius:g} m",
-                  header_style="bold", caption="start, goal in m; ok = within 5 cm of the goal; clear = min distance to the "
+    table = Table(title=f"polycc sim: {args.dynamics}, {args.rate_hz} Hz, vmax {args.vmax:g} m/s, r = {args.radius:g} "
+                        "m",
+                  header_style="bold", caption="start, goal in m; ok = within 5 cm of the goal; clear = min distance "
+                                               "to the "
                   "splat ellipsoids minus r; ratio = path / straight line; evalUs = largest modelled kernel time")
     for h in ("#", "start", "goal", "result", "time s", "path m", "ratio", "clear m", "coll", "evalUs"):
         table.add_column(h, justify="right", overflow="fold", no_wrap=h not in ("start", "goal"))
@@ -160,7 +169,8 @@ def run(args) -> int:
     console.print(table)
     plot = Path(args.plot) if args.plot else out / "trajectories.png"
     plot_trajectories(plot, trials, stored_vertices(sim.packed), scene.ellipsoids,
-                      title=f"polycc sim ({args.dynamics}): {Path(scene_path).name}, n = {sim.packed.n_polys} polytopes")
+                      title=f"polycc sim ({args.dynamics}): {Path(scene_path).name}, n = {sim.packed.n_polys} "
+                            "polytopes")
     n_ok = sum(t.success for t in trials)
     collisions = sum(t.collisions for t in trials)
     min_clear = min(t.min_clearance_m for t in trials)

@@ -63,10 +63,10 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from polycc.cli.console import console
     from polycc.sim.crtp_device import CrtpDevice
     from polycc.sim.device_server import SerialDeviceServer, UdpDeviceServer
     from polycc.sim.sitl_device import SitlDeviceModel
-    from polycc.cli.console import console
 
     out = Path(args.out)
     header = out / "polytopes.h"

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from polycc.cli.argtypes import number
+from polycc.cli.console import StageProgress, console
 from polycc.cli.scene_args import (
     add_scene_options,
     check_scene_file,
@@ -17,7 +18,6 @@ from polycc.cli.scene_args import (
     recorded_settings,
     resolve_scene_settings,
 )
-from polycc.cli.console import StageProgress, console
 from polycc.errors import PolyccError
 from polycc.occupancy.floaters import floater_text
 from polycc.verify import verify
@@ -123,13 +123,15 @@ def run(args: argparse.Namespace) -> int:
         Path(args.report).write_text(json.dumps({**rep.as_dict(), "time_s": elapsed}, indent=2))
     vox = sum(l.voxels_checked for l in rep.levels)
     pts = sum(l.points_sampled for l in rep.levels)
-    unv = sum(l.voxels_uncovered for l in rep.levels) + sum(max(f["uncovered_voxels"], 1) for f in rep.certificate_failures)
+    unv = sum(l.voxels_uncovered for l in rep.levels) + sum(max(f["uncovered_voxels"],
+                                                                1) for f in rep.certificate_failures)
     unp = sum(l.points_uncovered for l in rep.levels)
     cons = " ".join(f"n={l.n}:{l.conservativeness:.3f}+/-{l.conservativeness_ci:.3f}" for l in rep.levels)
     occ_text = ("exact occupancy" if rep.occupancy == "exact" else
                 f"FILTERED occupancy (M = {st.min_splats_per_voxel}; "
                 f"{(rep.floater_filter or {}).get('splats_not_fully_covered', 0):,} splats not covered)")
-    print(f"verify: {'PASS' if rep.ok else 'FAIL'} against the {occ_text} | levels checked directly {len(rep.levels)}, by certificate "
+    print(f"verify: {'PASS' if rep.ok else 'FAIL'} against the {occ_text} | levels checked directly {len(rep.levels)}, "
+          "by certificate "
           f"{rep.certificate_levels} | voxels checked {vox:,} | points sampled {pts:,} | uncovered voxels {unv:,} "
           f"points {unp:,} | conservativeness (95% CI) {cons}")
     return 0 if rep.ok else 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from polycc.cli.console import console
 from polycc.cli.scene_args import (
     add_scene_options,
     load_scene_and_occupancy,
@@ -11,7 +12,6 @@ from polycc.cli.scene_args import (
     print_summary,
     scene_summary_rows,
 )
-from polycc.cli.console import console
 
 
 def register(sub) -> None:
@@ -31,6 +31,7 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     scene, occ = load_scene_and_occupancy(args.scene, args)
     occ.save(args.output)
-    print_summary("polycc voxelize", scene_summary_rows(scene) + occupancy_summary_rows(occ) + [("written", args.output)])
+    print_summary("polycc "
+                  "voxelize", scene_summary_rows(scene) + occupancy_summary_rows(occ) + [("written", args.output)])
     console.print(f"occupancy: {len(occ):,} voxels at g = {occ.voxel_size:g} m -> {args.output}")
     return 0

@@ -13,8 +13,8 @@ from pathlib import Path
 import jinja2
 import numpy as np
 
-from polycc.version import __version__
 from polycc.onboard.layout import SCENE_FORMAT, PackedScene, pack_scene
+from polycc.version import __version__
 
 MANIFEST_FORMAT = "polycc-scene/1"
 

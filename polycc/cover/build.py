@@ -24,12 +24,12 @@ import numpy as np
 
 from polycc.cover.clusters import build_clusters, neighbour_offsets
 from polycc.cover.family import CoverFamily
+from polycc.cover.merge import MERGE_COSTS, merge_all
+from polycc.cover.setcover import greedy_set_cover
 from polycc.errors import PolyccError
 from polycc.geometry.lattice import integer_planes, lattice_hull, voxel_corner_points, world_halfplanes
-from polycc.cover.merge import MERGE_COSTS, merge_all
-from polycc.occupancy.grid import OccupancyGrid
-from polycc.cover.setcover import greedy_set_cover
 from polycc.geometry.union_volume import in_voxels, union_waste
+from polycc.occupancy.grid import OccupancyGrid
 
 # "best": run both merge costs (in parallel on two cores) and keep the family whose measured
 # conservativeness over the paper's flight counts is lower; see bench/bench_cover.py.
@@ -82,7 +82,8 @@ def build_cover(
     With ``cost="best"`` it also receives ``families`` (cost -> family, both runs).
     """
     if len(grid) == 0:
-        raise PolyccError("the occupancy grid is empty: no splat survived the scene options; relax --crop/--min-opacity/--min-splats-per-voxel")
+        raise PolyccError("the occupancy grid is empty: no splat survived the scene options; relax "
+                          "--crop/--min-opacity/--min-splats-per-voxel")
     if cost not in COVER_COSTS:
         raise PolyccError(f"--merge-cost {cost}: unknown; choose one of {', '.join(COVER_COSTS)}")
     if b < 0:
@@ -91,7 +92,6 @@ def build_cover(
     if cost == "best":
         return _build_best(grid, b, progress, stages, refresh, boxes)
     timings = {}
-    g, origin = float(grid.voxel_size), np.asarray(grid.origin, np.float64)
     idx = np.asarray(grid.indices, np.int64)
     base = idx.min(axis=0)
     local = idx - base
@@ -109,65 +109,60 @@ def build_cover(
     timings["set_cover"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
+    res = _merge(cl, chosen, local, cost, refresh, stages, progress)
+    timings["merge"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    fam = _family(grid, cl, chosen, res, base)
+    timings["halfplanes"] = time.perf_counter() - t0
+    fam.meta.update({
+        "neighborhood_b": int(b), "subcover_boxes": bool(boxes), "merge_cost": cost, "merge_refresh": refresh,
+        "voxels": int(len(idx)), "clusters_distinct_patterns": int(len(cl.weights)), "subcover_size": len(chosen),
+        "pair_evaluations": int(res.pair_evaluations), "touch_margin_rounds": int(res.margin_rounds),
+        "timings_s": timings,
+    })
+    return fam
+
+
+def _merge(cl, chosen: np.ndarray, local: np.ndarray, cost: str, refresh: str, stages: dict, progress):
+    """Merge the sub-cover's clusters (local lattice coordinates: voxel indices minus their minimum)."""
     pats = cl.pattern[chosen]
-    # pattern hull vertices are relative to the centre voxel's lower corner
-    centres = cl.centre[chosen]
+    centres = cl.centre[chosen]  # pattern hull vertices are relative to the centre voxel's lower corner
     leaf_verts = [cl.hull_vertices[p] + local[v] for p, v in zip(pats, centres)]
-    leaf_w = cl.weights[pats]
-    leaf_vol = cl.volumes[pats]
     pplanes = stages.get("pattern_planes") or _pattern_planes(cl, pats)
     stages["pattern_planes"] = pplanes
     leaf_planes = []
     for p, v in zip(pats, centres):
         nrm, off = pplanes[int(p)]
         leaf_planes.append((nrm, off + nrm @ local[v]))
-    res = merge_all(leaf_verts, leaf_w, leaf_vol, local, cost=cost, refresh=refresh, leaf_planes=leaf_planes,
-                    leaf_patterns=[int(p) for p in pats],
-                    progress=None if progress is None else (lambda k: progress("merge", k, len(chosen) - 1)))
-    timings["merge"] = time.perf_counter() - t0
+    return merge_all(leaf_verts, cl.weights[pats], cl.volumes[pats], local, cost=cost, refresh=refresh,
+                     leaf_planes=leaf_planes, leaf_patterns=[int(p) for p in pats],
+                     progress=None if progress is None else (lambda k: progress("merge", k, len(chosen) - 1)))
 
-    t0 = time.perf_counter()
-    N = len(chosen)
+
+def _family(grid: OccupancyGrid, cl, chosen: np.ndarray, res, base: np.ndarray) -> CoverFamily:
+    """The family file's arrays: world half-planes (outward-rounded) and vertices of every node, m."""
+    g, origin = float(grid.voxel_size), np.asarray(grid.origin, np.float64)
     plane_rows, vert_rows = [], []
-    for k in range(2 * N - 1):
+    for k in range(2 * len(chosen) - 1):
         nrm, _ = res.planes[k]
         P, Vw = world_halfplanes(nrm, res.vertices[k] + base, g, origin)
         plane_rows.append(P)
         vert_rows.append(Vw)
-    timings["halfplanes"] = time.perf_counter() - t0
-
     members = cl.neighbours[chosen]
     mask = members >= 0
     g3 = g**3
-    fam = CoverFamily(
-        voxel_size=g,
-        origin=origin,
-        grid_indices=idx,
-        leaf_voxel=centres.astype(np.int64),
+    return CoverFamily(
+        voxel_size=g, origin=origin, grid_indices=np.asarray(grid.indices, np.int64),
+        leaf_voxel=cl.centre[chosen].astype(np.int64),
         leaf_ptr=np.concatenate([[0], np.cumsum(mask.sum(axis=1))]).astype(np.int64),
         leaf_members=members[mask].astype(np.int64),
-        merges=res.merges,
-        merge_costs=res.costs * g3,
-        node_weight=res.weight * g3,
-        node_volume=res.volume * g3,
+        merges=res.merges, merge_costs=res.costs * g3, node_weight=res.weight * g3, node_volume=res.volume * g3,
         plane_ptr=np.concatenate([[0], np.cumsum([len(p) for p in plane_rows])]).astype(np.int64),
         planes=np.concatenate(plane_rows),
         vertex_ptr=np.concatenate([[0], np.cumsum([len(v) for v in vert_rows])]).astype(np.int64),
         vertices=np.concatenate(vert_rows),
-        meta={
-            "neighborhood_b": int(b),
-            "subcover_boxes": bool(boxes),
-            "merge_cost": cost,
-            "merge_refresh": refresh,
-            "voxels": int(len(idx)),
-            "clusters_distinct_patterns": int(len(cl.weights)),
-            "subcover_size": int(N),
-            "pair_evaluations": int(res.pair_evaluations),
-            "touch_margin_rounds": int(res.margin_rounds),
-            "timings_s": timings,
-        },
+        meta={},
     )
-    return fam
 
 
 def conservativeness(fam: CoverFamily, n: int, samples: int = SELECTION_SAMPLES, seed: int = 0,

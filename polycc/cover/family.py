@@ -111,7 +111,8 @@ class CoverFamily:
             path = path / FILENAME
         path.parent.mkdir(parents=True, exist_ok=True)
         arrays = {k: getattr(self, k) for k in _ARRAY_KEYS}
-        np.savez_compressed(path, format=np.array(FORMAT), meta=np.array(json.dumps(self.meta, sort_keys=True)), **arrays)
+        np.savez_compressed(path, format=np.array(FORMAT), meta=np.array(json.dumps(self.meta, sort_keys=True)),
+                            **arrays)
         return path
 
     @staticmethod

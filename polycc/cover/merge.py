@@ -267,72 +267,85 @@ def merge_all(
     """
     if refresh not in ("lazy", "eager"):
         raise ValueError(f"refresh must be 'lazy' or 'eager', not {refresh!r}")
-    eager = refresh == "eager"
     if cost not in MERGE_COSTS:
         raise ValueError(f"unknown merge cost {cost!r}; choose one of {MERGE_COSTS}")
-    N = len(leaf_vertices)
-    M = 2 * N - 1
-    verts: list = list(leaf_vertices) + [None] * (N - 1)
-    # exact integer planes (N q <= e) of every node; the caller passes the leaves' (cached per pattern)
-    planes: list = (list(leaf_planes) if leaf_planes is not None else [None] * N) + [None] * (N - 1)
-    weight = np.zeros(M)
-    volume = np.zeros(M)
-    weight[:N], volume[:N] = leaf_weight, leaf_volume
-    lo = np.zeros((M, 3), np.int64)
-    hi = np.zeros((M, 3), np.int64)
-    for i, v in enumerate(leaf_vertices):
-        lo[i], hi[i] = v.min(axis=0), v.max(axis=0)
-    alive = np.zeros(M, bool)
-    alive[:N] = True
-    live = _Live(M)
-    for i in range(N):
-        live.add(i, lo[i], hi[i])
-    query = VoxelBoxQuery(voxels_local)
-    paper = cost == "paper"
+    m = _Merger(leaf_vertices, leaf_weight, leaf_volume, voxels_local, cost, refresh == "eager", leaf_planes,
+                leaf_patterns)
+    return m.run(progress)
 
-    def _cost(w, i, j):
-        return w if paper else w - weight[i] - weight[j]
 
-    evals = 0
-    # W of a pair of leaves depends only on (pattern, pattern, offset, occupancy of the union's
-    # box): floors and walls repeat the same few, so their hulls are computed once.
-    leaf_cache: dict = {}
-    use_cache = leaf_patterns is not None and query.dense is not None
+class _Merger:
+    """State of one merge run: nodes (vertices, exact planes, W, volume, box), the live set, the
+    candidate heap with lazy invalidation, and the adjacency of live nodes."""
 
-    def evaluate(i: int, j: int, exact: bool = True, options: bytes = EVAL_QHULL):
+    def __init__(self, leaf_vertices, leaf_weight, leaf_volume, voxels_local, cost, eager, leaf_planes,
+                 leaf_patterns):
+        N = self.N = len(leaf_vertices)
+        M = 2 * N - 1
+        self.eager = eager
+        self.paper = cost == "paper"
+        self.verts: list = list(leaf_vertices) + [None] * (N - 1)
+        # exact integer planes (N q <= e) of every node; the caller passes the leaves' (cached per pattern)
+        self.planes: list = (list(leaf_planes) if leaf_planes is not None else [None] * N) + [None] * (N - 1)
+        self.weight = np.zeros(M)
+        self.volume = np.zeros(M)
+        self.weight[:N], self.volume[:N] = leaf_weight, leaf_volume
+        self.lo = np.zeros((M, 3), np.int64)
+        self.hi = np.zeros((M, 3), np.int64)
+        for i, v in enumerate(leaf_vertices):
+            self.lo[i], self.hi[i] = v.min(axis=0), v.max(axis=0)
+        self.alive = np.zeros(M, bool)
+        self.alive[:N] = True
+        self.live = _Live(M)
+        for i in range(N):
+            self.live.add(i, self.lo[i], self.hi[i])
+        self.query = VoxelBoxQuery(voxels_local)
+        self.evals = 0
+        # W of a pair of leaves depends only on (pattern, pattern, offset, occupancy of the union's
+        # box): floors and walls repeat the same few, so their hulls are computed once.
+        self.leaf_cache: dict = {}
+        self.leaf_patterns = leaf_patterns
+        self.use_cache = leaf_patterns is not None and self.query.dense is not None
+        self.heap: list = []
+        self.parent = list(range(M))
+        self.adj: list = [set() for _ in range(N)] + [None] * (N - 1)
+        self.fresh: set = set()  # pairs (a < b) that have an entry computed while both were alive
+        self.margin = 0
+        self.rounds = 0
+
+    def _cost(self, w, i, j):
+        return w if self.paper else w - self.weight[i] - self.weight[j]
+
+    def evaluate(self, i: int, j: int, exact: bool = True, options: bytes = EVAL_QHULL):
         """(cost, W, hull, exact) of merging nodes i and j; with ``exact=False`` a large
         box gets a lower bound of the cost instead (W is None then). The hull is None when
         the W of a leaf pair came from the cache."""
-        nonlocal evals
+        lo, hi, query = self.lo, self.hi, self.query
         key = None
-        if use_cache and i < N and j < N and options == EVAL_QHULL:
+        if self.use_cache and i < self.N and j < self.N and options == EVAL_QHULL:
             blo, bhi = np.minimum(lo[i], lo[j]), np.maximum(hi[i], hi[j])
             box = query.dense[blo[0] : bhi[0], blo[1] : bhi[1], blo[2] : bhi[2]]
-            key = (leaf_patterns[i], leaf_patterns[j], (lo[j] - lo[i]).tobytes(), box.shape, box.tobytes())
-            w = leaf_cache.get(key)
+            key = (self.leaf_patterns[i], self.leaf_patterns[j], (lo[j] - lo[i]).tobytes(), box.shape, box.tobytes())
+            w = self.leaf_cache.get(key)
             if w is not None:
-                return _cost(w, i, j), w, None, True
-        evals += 1
-        h = lattice_hull(np.concatenate([verts[i], verts[j]]), options)
+                return self._cost(w, i, j), w, None, True
+        self.evals += 1
+        h = lattice_hull(np.concatenate([self.verts[i], self.verts[j]]), options)
         blo, bhi = np.minimum(lo[i], lo[j]), np.maximum(hi[i], hi[j])
         if not exact and np.prod(bhi - blo) > BOUND_CELLS:
             w = max(h.volume - query.count(blo, bhi - 1), 0.0)
-            return _cost(w, i, j), None, h, False
+            return self._cost(w, i, j), None, h, False
         eq = h.equations
         if np.prod(bhi - blo) > BOUND_CELLS:
             eq = np.unique(np.round(eq, 12), axis=0)  # qhull repeats coplanar facets
         occ = query.count_inside(eq[:, :3], eq[:, 3], blo, bhi - 1)
         w = max(h.volume - occ, 0.0)
         if key is not None:
-            leaf_cache[key] = w
-        return _cost(w, i, j), w, h, True
+            self.leaf_cache[key] = w
+        return self._cost(w, i, j), w, h, True
 
-    heap: list = []
-    parent = list(range(M))
-    adj: list = [set() for _ in range(N)] + [None] * (N - 1)
-    fresh: set = set()  # pairs (a < b) that have an entry computed while both were alive
-
-    def find(a: int) -> int:
+    def find(self, a: int) -> int:
+        parent = self.parent
         r = a
         while parent[r] != r:
             r = parent[r]
@@ -340,57 +353,58 @@ def merge_all(
             parent[a], a = r, parent[a]
         return r
 
-    def add_pair(a: int, b: int, batch: bool = False, exact: bool = False) -> None:
+    def add_pair(self, a: int, b: int, batch: bool = False, exact: bool = False) -> None:
         a, b = (a, b) if a < b else (b, a)
-        c, _, _, ex = evaluate(a, b, exact)
+        c, _, _, ex = self.evaluate(a, b, exact)
         entry = (c, a, b, ex)
-        heap.append(entry) if batch else heapq.heappush(heap, entry)
-        fresh.add((a, b))
-        adj[a].add(b)
-        adj[b].add(a)
+        self.heap.append(entry) if batch else heapq.heappush(self.heap, entry)
+        self.fresh.add((a, b))
+        self.adj[a].add(b)
+        self.adj[b].add(a)
 
-    for i, j in _initial_pairs(lo[:N], hi[:N]):
-        add_pair(int(i), int(j), batch=True)
-    heapq.heapify(heap)
+    def widen(self) -> None:
+        """Disconnected parts left: widen what "touching" means and enumerate the new pairs."""
+        self.margin = max(1, 2 * self.margin)
+        self.rounds += 1
+        for i in self.live.ids[: self.live.n].copy():
+            others = self.live.touching(self.lo[i], self.hi[i], self.margin)
+            for j in others[others > i]:
+                if (int(i), int(j)) not in self.fresh:
+                    self.add_pair(int(i), int(j), batch=True)
+        heapq.heapify(self.heap)
 
-    merges = np.zeros((max(N - 1, 0), 2), np.int64)
-    costs = np.zeros(max(N - 1, 0))
-    margin, rounds = 0, 0
-    for t in range(N - 1):
+    def pop_best(self) -> tuple[float, int, int]:
+        """The cheapest pair of two live nodes (re-evaluating stale or bound-only entries)."""
+        heap, alive = self.heap, self.alive
         while True:
-            if not heap:  # disconnected parts left: widen what "touching" means
-                margin = max(1, 2 * margin)
-                rounds += 1
-                ids = live.ids[: live.n].copy()
-                for i in ids:
-                    others = live.touching(lo[i], hi[i], margin)
-                    for j in others[others > i]:
-                        if (int(i), int(j)) not in fresh:
-                            add_pair(int(i), int(j), batch=True)
-                heapq.heapify(heap)
+            if not heap:
+                self.widen()
                 continue
             c, i, j, ex = heapq.heappop(heap)
             if alive[i] and alive[j]:
                 if ex:
-                    break
-                heapq.heappush(heap, (evaluate(i, j, True)[0], i, j, True))  # bound -> exact
+                    return c, i, j
+                heapq.heappush(heap, (self.evaluate(i, j, True)[0], i, j, True))  # bound -> exact
                 continue
-            if eager:
+            if self.eager:
                 continue  # the merged node's pairs were all evaluated when it was made
-            a, b = find(i), find(j)
-            if a != b and (min(a, b), max(a, b)) not in fresh:
-                add_pair(a, b)  # stale key: re-evaluate for the live nodes, push back
-        k = N + t
-        _, weight[k], h, _ = evaluate(i, j, True, b"Qt")  # exact facets and vertices for the node
-        evals -= 1
-        verts[k], volume[k] = h.vertices, h.volume
-        planes[k] = integer_planes(h)
-        lo[k], hi[k] = h.vertices.min(axis=0), h.vertices.max(axis=0)
-        merges[t], costs[t] = (i, j), c
-        alive[i] = alive[j] = False
-        parent[i] = parent[j] = k
-        live.remove(i)
-        live.remove(j)
+            a, b = self.find(i), self.find(j)
+            if a != b and (min(a, b), max(a, b)) not in self.fresh:
+                self.add_pair(a, b)  # stale key: re-evaluate for the live nodes, push back
+
+    def merge(self, t: int, i: int, j: int) -> None:
+        """Merge step t: node N + t from live nodes i and j, with exact facets and vertices."""
+        k = self.N + t
+        _, self.weight[k], h, _ = self.evaluate(i, j, True, b"Qt")
+        self.evals -= 1
+        self.verts[k], self.volume[k] = h.vertices, h.volume
+        self.planes[k] = integer_planes(h)
+        self.lo[k], self.hi[k] = h.vertices.min(axis=0), h.vertices.max(axis=0)
+        self.alive[i] = self.alive[j] = False
+        self.parent[i] = self.parent[j] = k
+        self.live.remove(i)
+        self.live.remove(j)
+        adj = self.adj
         nb = (adj[i] | adj[j]) - {i, j}
         adj[i] = adj[j] = None
         for o in nb:
@@ -398,11 +412,24 @@ def merge_all(
             adj[o].discard(j)
             adj[o].add(k)
         adj[k] = nb
-        alive[k] = True
-        for o in live.touching(lo[k], hi[k], margin):
-            if eager or int(o) not in nb:
-                add_pair(int(o), k)
-        live.add(k, lo[k], hi[k])
-        if progress is not None and (t % 256 == 0 or t == N - 2):
-            progress(t + 1)
-    return MergeResult(merges, costs, weight, volume, verts, planes, margin_rounds=rounds, pair_evaluations=evals)
+        self.alive[k] = True
+        for o in self.live.touching(self.lo[k], self.hi[k], self.margin):
+            if self.eager or int(o) not in nb:
+                self.add_pair(int(o), k)
+        self.live.add(k, self.lo[k], self.hi[k])
+
+    def run(self, progress) -> MergeResult:
+        N = self.N
+        for i, j in _initial_pairs(self.lo[:N], self.hi[:N]):
+            self.add_pair(int(i), int(j), batch=True)
+        heapq.heapify(self.heap)
+        merges = np.zeros((max(N - 1, 0), 2), np.int64)
+        costs = np.zeros(max(N - 1, 0))
+        for t in range(N - 1):
+            c, i, j = self.pop_best()
+            merges[t], costs[t] = (i, j), c
+            self.merge(t, i, j)
+            if progress is not None and (t % 256 == 0 or t == N - 2):
+                progress(t + 1)
+        return MergeResult(merges, costs, self.weight, self.volume, self.verts, self.planes,
+                           margin_rounds=self.rounds, pair_evaluations=self.evals)

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from polycc.demo.arena import make_floor
-from polycc.scene.ellipsoids import Ellipsoids
 from polycc.errors import PolyccError
+from polycc.scene.ellipsoids import Ellipsoids
 
 # Up direction of each capture in its own file frame (checked by plotting them): the
 # plant (COLMAP, y down) and the tree mesh are upside down along y; the ring stands

@@ -33,7 +33,8 @@ import numpy as np
 ERR_REL = 1e-12
 
 # Free axis and the two fixed axes of each of the 12 edges; fixed values in {0,1}^2.
-_EDGES = [(a, b, c, tb, tc) for (a, b, c) in ((0, 1, 2), (1, 0, 2), (2, 0, 1)) for tb in (0.0, 1.0) for tc in (0.0, 1.0)]
+_EDGES = [(a, b, c, tb, tc) for (a, b, c) in ((0, 1, 2), (1, 0, 2), (2, 0, 1))
+          for tb in (0.0, 1.0) for tc in (0.0, 1.0)]
 # Two free axes and the fixed axis of each of the 6 facets.
 _FACETS = [(i, j, f, tf) for (i, j, f) in ((0, 1, 2), (0, 2, 1), (1, 2, 0)) for tf in (0.0, 1.0)]
 
@@ -46,7 +47,8 @@ def _norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(_dot(a, a))
 
 
-def min_whitened_distance(c: np.ndarray, M: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def min_whitened_distance(c: np.ndarray, M: np.ndarray, lo: np.ndarray,
+                          hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimum over each box of |M (p - c)|, and a bound on its float error.
 
     c: (P, 3) ellipsoid centres; M: (P, 3, 3) whitening matrices; lo, hi: (P, 3) box

@@ -116,7 +116,8 @@ def to_world(points_q: np.ndarray, g: float, origin: np.ndarray) -> np.ndarray:
     return np.asarray(origin, np.float64) + np.asarray(points_q, np.float64) * float(g)
 
 
-def world_halfplanes(normals: np.ndarray, vertices_q: np.ndarray, g: float, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def world_halfplanes(normals: np.ndarray, vertices_q: np.ndarray, g: float,
+                     origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World-space half-planes and vertices of a lattice polytope.
 
     ``normals`` (F, 3) integer outward facet normals, ``vertices_q`` (V, 3) its lattice

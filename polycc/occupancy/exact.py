@@ -21,10 +21,10 @@ from typing import Callable
 
 import numpy as np
 
-from polycc.geometry.ellipsoid_box import boxes_inside, boxes_intersect
-from polycc.scene.ellipsoids import Ellipsoids
 from polycc.errors import PolyccError
+from polycc.geometry.ellipsoid_box import boxes_inside, boxes_intersect
 from polycc.occupancy.grid import OccupancyGrid
+from polycc.scene.ellipsoids import Ellipsoids
 
 _BITS = 21
 _OFF = 1 << (_BITS - 1)  # voxel indices must lie in [-2^20, 2^20)
@@ -124,7 +124,8 @@ def _expand_blocks(block_lo: np.ndarray, level: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.empty((0, 3), np.int64)
 
 
-def _voxelize_chunk(c: np.ndarray, M: np.ndarray, imin: np.ndarray, imax: np.ndarray, g: float, origin: np.ndarray, acc: _Accumulator) -> int:
+def _voxelize_chunk(c: np.ndarray, M: np.ndarray, imin: np.ndarray, imax: np.ndarray, g: float, origin: np.ndarray,
+                    acc: _Accumulator) -> int:
     """Emit the occupied voxel keys of one chunk of ellipsoids; returns the number of exact tests."""
     owner, blo, lev = _initial_blocks(imin, imax)
     tests = 0

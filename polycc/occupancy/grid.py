@@ -71,7 +71,8 @@ class OccupancyGrid:
         try:
             with np.load(path, allow_pickle=False) as z:
                 if "format" not in z or str(z["format"]) != NPZ_FORMAT:
-                    raise PolyccError(f"{path}: not a polycc occupancy file; make one with `polycc voxelize SCENE -o {path.name}`")
+                    raise PolyccError(f"{path}: not a polycc occupancy file; make one with `polycc voxelize SCENE -o "
+                                      f"{path.name}`")
                 return OccupancyGrid(
                     indices=z["indices"].astype(np.int64),
                     voxel_size=float(z["voxel_size"]),
@@ -81,4 +82,5 @@ class OccupancyGrid:
         except FileNotFoundError:
             raise PolyccError(f"{path}: no such file; make one with `polycc voxelize SCENE -o {path.name}`") from None
         except (OSError, ValueError, KeyError) as exc:
-            raise PolyccError(f"{path}: cannot read occupancy file ({exc}); re-create it with `polycc voxelize`") from None
+            raise PolyccError(f"{path}: cannot read occupancy file ({exc}); re-create it with `polycc "
+                              "voxelize`") from None

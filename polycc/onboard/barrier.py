@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from polycc.onboard.fastmath import F, ONE, exp32, log32
+from polycc.onboard.fastmath import ONE, F, exp32, log32
 from polycc.onboard.layout import PackedScene
 
 # Mirrors of the C macros (polycc_kernel.h).
@@ -68,8 +68,8 @@ def _quantum_ok(q) -> bool:
 
 
 def _scene_ok(sc: PackedScene) -> bool:
-    return bool((sc.n_polys == 0) == (sc.n_clusters == 0) and _quantum_ok(sc.quantum) and ZERO <= sc.coord_bound <= F(1e6)
-                and ZERO <= sc.log_lmax <= F(12.0))
+    return bool((sc.n_polys == 0) == (sc.n_clusters == 0) and _quantum_ok(sc.quantum)
+                and ZERO <= sc.coord_bound <= F(1e6) and ZERO <= sc.log_lmax <= F(12.0))
 
 
 def _visit_order(lead: np.ndarray, count: int) -> np.ndarray:

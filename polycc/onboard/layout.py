@@ -304,12 +304,22 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
     axis directions always included, weighted spherical k-means) and every plane is snapped to
     its nearest table direction, its offset recomputed outward from the vertices; a polytope
     that snapping leaves unbounded gets its six axis-aligned tangent planes.  Then the flash
-    size is ``layout_bytes(n_polys, n_planes, n_clusters, <= T)`` whatever the cover.  Polytopes are grouped into clusters of at
-    most ``leaf`` (default max(4, ceil(sqrt(n)))) and stored cluster by cluster
+    size is ``layout_bytes(n_polys, n_planes, n_clusters, <= T)`` whatever the cover.  Polytopes are
+    grouped into clusters of at most ``leaf`` (default max(4, ceil(sqrt(n)))) and stored cluster by cluster
     (``PackedScene.order``).  Culling bounds are computed in float64 from the decoded values and
     rounded outward (``rel_safety`` is a relative cushion for the float64 geometry).
     ``record_cache`` (a dict kept by the caller) memoises polytope records across packings.
     """
+    rows, verts, q = _checked_inputs(polytopes, vertices, quantum)
+    tvals, quant = _quantize(rows, verts, q, normal_grid, max_normals, merge_duplicates, record_cache)
+    normals = np.zeros(len(tvals), NORMAL_DTYPE)
+    normals.view("<f4").reshape(-1, 3)[:] = np.array(tvals, np.float32).reshape(-1, 3)
+    recs = [_poly_record(k, *t, q, rel_safety, record_cache) for k, t in enumerate(quant)]
+    return _assemble(normals, recs, q, leaf or max(4, math.ceil(math.sqrt(len(rows)))), rel_safety)
+
+
+def _checked_inputs(polytopes, vertices, quantum) -> tuple[list[np.ndarray], list[np.ndarray], float]:
+    """(half-plane rows, exact vertices, quantum) after checking every input."""
     if len(polytopes) == 0:
         raise PolyccError("no polytopes to pack; the scene needs at least one")
     if len(polytopes) > MAX_POLYS:
@@ -330,9 +340,14 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
     e = math.log2(q)
     if e != int(e) or not QUANTUM_EXP_RANGE[0] <= e <= QUANTUM_EXP_RANGE[1]:
         raise PolyccError(f"quantum {q} must be a power of two in [2^{QUANTUM_EXP_RANGE[0]}, 2^{QUANTUM_EXP_RANGE[1]}]")
+    return rows, verts, q
 
+
+def _quantize(rows, verts, q, normal_grid, max_normals, merge_duplicates, record_cache):
+    """(table rows, per polytope (normal indices, d_q, normals)): every plane snapped to the shared
+    table and its offset rounded outward over the exact vertices; unused table entries dropped."""
     table, tvals, per_poly = _normal_table(rows, normal_grid, max_normals)
-    quant = []  # per polytope: (normal indices, d_q, normals) after dedup
+    quant = []
     for k, (idx, v) in enumerate(zip(per_poly, verts)):
         if merge_duplicates:  # identical normals give identical planes: store one
             idx = list(dict.fromkeys(idx))
@@ -356,20 +371,21 @@ def pack_scene(polytopes: list[np.ndarray], vertices: list[np.ndarray] | None = 
     tvals = [tvals[i] for i in used]
     quant = [(remap[i], dq, nq) for i, dq, nq in quant]
     if len(tvals) > MAX_NORMALS:
-        raise PolyccError(f"{len(tvals)} distinct normals exceed {MAX_NORMALS}; use a coarser normal_grid or max_normals")
+        raise PolyccError(f"{len(tvals)} distinct normals exceed {MAX_NORMALS}; use a coarser normal_grid or "
+                          "max_normals")
     total = sum(len(t[0]) for t in quant)
     if total > MAX_PLANES:
         raise PolyccError(f"{total} half-planes exceed the layout limit of {MAX_PLANES}; reduce the cover")
-    normals = np.zeros(len(tvals), NORMAL_DTYPE)
-    normals.view("<f4").reshape(-1, 3)[:] = np.array(tvals, np.float32).reshape(-1, 3)
+    return tvals, quant
 
-    recs = [_poly_record(k, *t, q, rel_safety, record_cache) for k, t in enumerate(quant)]
+
+def _assemble(normals: np.ndarray, recs: list[dict], q: float, leaf: int, rel_safety: float) -> PackedScene:
+    """Group the polytope records into culling clusters and lay out the arrays, bounds outward."""
     centres = np.array([r["c64"] for r in recs])
-    leaf = leaf or max(4, math.ceil(math.sqrt(len(rows))))
     groups = _cluster_order(centres, leaf)
     order = np.concatenate(groups)
-    planes = np.zeros(total, PLANE_DTYPE)
-    polys = np.zeros(len(rows), POLY_DTYPE)
+    planes = np.zeros(sum(len(r["idx"]) for r in recs), PLANE_DTYPE)
+    polys = np.zeros(len(recs), POLY_DTYPE)
     clusters = np.zeros(len(groups), CLUSTER_DTYPE)
     first, pos, cb = 0, 0, 0.0
     for j, grp in enumerate(groups):

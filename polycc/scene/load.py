@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from polycc.errors import PolyccError
 from polycc.geometry.ellipsoid_box import boxes_intersect
 from polycc.scene.ellipsoids import SIGMA_FLOOR_M, Ellipsoids, quaternion_to_rotation
-from polycc.errors import PolyccError
 from polycc.scene.readers import read_splats
 from polycc.scene.transform import apply_transform, check_transform, scale_matrix
 
@@ -193,13 +193,15 @@ def crop_mask(ell: Ellipsoids, lo: np.ndarray, hi: np.ndarray, chunk: int = 200_
     for s in range(0, idx.size, chunk):
         sl = idx[s : s + chunk]
         sub = ell.subset(sl)
-        keep[sl] = boxes_intersect(sub.centers, sub.whitening(), np.broadcast_to(lo, (sl.size, 3)), np.broadcast_to(hi, (sl.size, 3)))
+        keep[sl] = boxes_intersect(sub.centers, sub.whitening(), np.broadcast_to(lo, (sl.size, 3)),
+                                   np.broadcast_to(hi, (sl.size, 3)))
     return keep
 
 
 def _check_options(opts: SceneOptions) -> None:
     if not (np.isfinite(opts.sigma) and opts.sigma > 0):
-        raise PolyccError(f"--sigma {opts.sigma}: must be a positive number of standard deviations (1 = paper, 3 = render extent)")
+        raise PolyccError(f"--sigma {opts.sigma}: must be a positive number of standard deviations (1 = paper, 3 = "
+                          "render extent)")
     if not (0.0 <= opts.min_opacity <= 1.0):
         raise PolyccError(f"--min-opacity {opts.min_opacity}: must be between 0 and 1")
     if opts.scale is not None and not (np.isfinite(opts.scale) and opts.scale > 0):

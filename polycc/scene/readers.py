@@ -49,7 +49,8 @@ def read_splats(path: str | Path) -> RawSplats:
     if ext == ".splat":
         return read_splat(path)
     raise PolyccError(
-        f"{path}: unknown extension '{path.suffix}'; polycc reads 3DGS or point-cloud .ply and antimatter15 .splat files"
+        f"{path}: unknown extension '{path.suffix}'; polycc reads 3DGS or point-cloud .ply and antimatter15 .splat "
+        "files"
     )
 
 
@@ -65,7 +66,8 @@ def read_splat(path: Path) -> RawSplats:
         raise PolyccError(f"{path}: the file is empty; re-export the scene")
     if size % _SPLAT_DTYPE.itemsize:
         raise PolyccError(
-            f"{path}: truncated .splat file ({size} bytes is not a multiple of the 32-byte record); re-export or re-download it"
+            f"{path}: truncated .splat file ({size} bytes is not a multiple of the 32-byte record); re-export or "
+            "re-download it"
         )
     rec = np.fromfile(path, dtype=_SPLAT_DTYPE)
     return RawSplats(
@@ -99,7 +101,8 @@ def read_ply(path: Path) -> RawSplats:
             raise PolyccError(
                 f"{path}: the .ply is a mesh ({e.count:,} '{e.name}' elements); polycc reads splats and points, "
                 "and reading only the mesh's vertices would leave its surfaces out of the cover; sample the mesh "
-                "surface into a dense point cloud (x y z radius) or splats first (mesh voxelization is not supported yet)"
+                "surface into a dense point cloud (x y z radius) or splats first (mesh voxelization is not supported "
+                "yet)"
             )
         _check_body_length(path, ply)
         v = ply["vertex"].data
@@ -108,7 +111,8 @@ def read_ply(path: Path) -> RawSplats:
     except PlyHeaderParseError as exc:
         raise PolyccError(f"{path}: not a valid .ply header ({exc}); re-export the file") from None
     except (PlyElementParseError, ValueError, EOFError, MemoryError, IndexError) as exc:
-        raise PolyccError(f"{path}: truncated or corrupt .ply data ({_one_line(exc)}); re-export or re-download the file") from None
+        raise PolyccError(f"{path}: truncated or corrupt .ply data ({_one_line(exc)}); re-export or re-download the "
+                          "file") from None
     except OSError as exc:
         raise PolyccError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 from polycc.errors import PolyccError
+from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 
 _FORMATS = (
     '{"matrix": [[a,b,c,tx],[d,e,f,ty],[g,h,i,tz],[0,0,0,1]]} or '

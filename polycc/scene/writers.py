@@ -17,9 +17,12 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from polycc.scene.ellipsoids import Ellipsoids
 from polycc.errors import PolyccError
-from polycc.scene.readers import SH_C0  # degree-0 real spherical harmonic, 1 / (2 sqrt(pi)); one source for reader and writer
+from polycc.scene.ellipsoids import Ellipsoids
+from polycc.scene.readers import (
+    SH_C0,  # degree-0 real spherical harmonic, 1 / (2 sqrt(pi)); one source for reader and writer
+)
+
 # Number of higher-order SH coefficients in the graphdeco layout (degree 3, 15 x RGB).
 N_F_REST = 45
 # Opacities are clipped to [OPACITY_EPS, 1 - OPACITY_EPS] before the logit, so that

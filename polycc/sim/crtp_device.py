@@ -25,9 +25,9 @@ import zlib
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
-from polycc.version import __version__
 from polycc.errors import PolyccError
 from polycc.link.crtp import MAX_PAYLOAD, CrtpPacket, LinkChannel, LogChannel, ParamChannel, PlatformChannel, Port
+from polycc.version import __version__
 
 PROTOCOL_VERSION = 11
 """CRTP protocol version reported to clients. >= 4 selects the v2 TOC/param/log commands; 11

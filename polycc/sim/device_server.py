@@ -34,11 +34,11 @@ import time
 import tty
 from pathlib import Path
 
-from polycc.sim.crtp_device import CrtpDevice, DeviceModel
 from polycc.errors import PolyccError
 from polycc.link.cpx_serial import CpxSerialDevice
 from polycc.link.crtp import CrtpPacket, FramingError, LinkChannel, Port
 from polycc.link.udp import DEFAULT_PORT, MAX_DATAGRAM, parse_host_port
+from polycc.sim.crtp_device import CrtpDevice, DeviceModel
 
 LINK_PREFIX = "ttyUSB-polycc"
 """Default name of the /dev symlink (matches comports()'s /dev/ttyUSB* glob)."""

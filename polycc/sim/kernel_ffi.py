@@ -116,7 +116,8 @@ def build_cffi(prefix: str, cdef: str, source: str, sources: list[Path], include
             except Exception as exc:  # compiler missing or a warning under -Werror
                 if explain is not None:
                     raise PolyccError(explain(exc, extra)) from None
-                raise PolyccError(f"building {prefix} for the host failed ({exc}); install gcc and python3-dev") from None
+                raise PolyccError(f"building {prefix} for the host failed ({exc}); install gcc and "
+                                  "python3-dev") from None
             os.replace(built, target)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -263,7 +264,8 @@ def _unary_batch(fn_name: str, x: np.ndarray) -> np.ndarray:
     ffi = m.ffi
     x = np.ascontiguousarray(np.asarray(x, np.float32).ravel())
     y = np.empty_like(x)
-    getattr(m.lib, fn_name)(ffi.cast("const float *", ffi.from_buffer(x)), len(x), ffi.cast("float *", ffi.from_buffer(y)))
+    getattr(m.lib, fn_name)(ffi.cast("const float *", ffi.from_buffer(x)), len(x),
+                            ffi.cast("float *", ffi.from_buffer(y)))
     return y
 
 

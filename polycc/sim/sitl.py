@@ -163,7 +163,8 @@ class Simulator:
                       float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))), straight, P, max_eval, statuses)
         if io is not None:
             f3 = lambda k: np.asarray(io[k], np.float32).reshape(-1, 3)  # noqa: E731
-            trial.io = {"x_seen": f3("x_seen"), "u": f3("u"), "psi": np.asarray(io["psi"], np.float64).astype(np.float32),
+            trial.io = {"x_seen": f3("x_seen"), "u": f3("u"),
+                        "psi": np.asarray(io["psi"], np.float64).astype(np.float32),
                         "status": np.asarray(io["status"], np.int64), "goal": goal32,
                         "calls": np.asarray(io["calls"], np.int64), "x_kernel": f3("x_kernel"),
                         "vmax": np.asarray(io["vmax"], np.float32), "out_u": f3("out_u"),
@@ -202,7 +203,8 @@ def random_pairs(packed: PackedScene, params: Params, lo, hi, n_pairs: int, min_
     rng = np.random.default_rng(seed)
     diag = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
     if min_distance >= diag:
-        raise PolyccError(f"--min-distance {min_distance:g} m is not below the sampling box diagonal {diag:.2f} m; lower it")
+        raise PolyccError(f"--min-distance {min_distance:g} m is not below the sampling box diagonal {diag:.2f} m; "
+                          "lower it")
     pts = free_points(packed, params, lo, hi, 8 * n_pairs, rng)
     pairs = []
     used = np.zeros(len(pts), bool)
@@ -219,7 +221,8 @@ def random_pairs(packed: PackedScene, params: Params, lo, hi, n_pairs: int, min_
         used[i] = used[j] = True
         pairs.append((pts[i], pts[j]))
     if len(pairs) < n_pairs:
-        raise PolyccError(f"only {len(pairs)} of {n_pairs} start/goal pairs are {min_distance:g} m apart; lower --min-distance")
+        raise PolyccError(f"only {len(pairs)} of {n_pairs} start/goal pairs are {min_distance:g} m apart; lower "
+                          "--min-distance")
     return pairs
 
 

@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from polycc.errors import PolyccError
 from polycc.sim.app_ffi import AppSim
 from polycc.sim.crtp_device import DeviceModel, LogEntry, ParamEntry, ctype_from_log_type, ctype_from_param_type
 from polycc.sim.dynamics import make_dynamics
-from polycc.errors import PolyccError
 
 APP_STATUS_FORMAT = "<BBffff"
 """App-channel reply head: polycc.status (uint8), polycc.enable (uint8), polycc.psi (m),
@@ -50,7 +50,8 @@ MAX_CATCH_UP_MS = 1000
 def decode_app_status(data: bytes) -> dict[str, float]:
     """An app-channel reply of :class:`SitlDeviceModel` -> ``{status, enable, psi, x, y, z, echo}``."""
     status, enable, psi, x, y, z = struct.unpack(APP_STATUS_FORMAT, bytes(data[:APP_STATUS_SIZE]))
-    return {"status": status, "enable": enable, "psi": psi, "x": x, "y": y, "z": z, "echo": bytes(data[APP_STATUS_SIZE:])}
+    return {"status": status, "enable": enable, "psi": psi, "x": x, "y": y, "z": z,
+            "echo": bytes(data[APP_STATUS_SIZE:])}
 
 
 class SitlDeviceModel(DeviceModel):

@@ -85,7 +85,8 @@ def assert_bitexact(ref: dict, out: np.ndarray, what: str) -> None:
         a = np.ascontiguousarray(ref[f], np.float32).view(np.uint32).reshape(n, -1)
         b = np.ascontiguousarray(out[f], np.float32).view(np.uint32).reshape(n, -1)
         bad = np.nonzero(np.any(a != b, axis=1))[0]
-        assert len(bad) == 0, f"{what}: {f} differs in {len(bad)} of {n} states, first #{bad[0]}: C {b[bad[0]]} ref {a[bad[0]]}"
+        assert len(bad) == 0, (f"{what}: {f} differs in {len(bad)} of {n} states, first #{bad[0]}: "
+                               f"C {b[bad[0]]} ref {a[bad[0]]}")
     bad = np.nonzero(ref["flags"] != out["flags"])[0]
     assert len(bad) == 0, f"{what}: flags differ in {len(bad)} states, first #{bad[0]}"
 

@@ -3,9 +3,9 @@ Crazyflie's DeviceModel, and frames as cflib (the host) sends them."""
 
 from __future__ import annotations
 
-from polycc.sim.crtp_device import DeviceModel, LogEntry, ParamEntry
 from polycc.link.cpx_serial import CpxTarget, encode_crtp_frame
 from polycc.link.crtp import CrtpPacket
+from polycc.sim.crtp_device import DeviceModel, LogEntry, ParamEntry
 
 PARAMS = [("polycc", "goalX", "float", 0.0), ("polycc", "goalY", "float", 0.0), ("polycc", "goalZ", "float", 1.0),
           ("polycc", "enable", "uint8_t", 0), ("polycc", "mode", "int16_t", -3), ("polycc", "gain", "double", 0.5)]

@@ -11,10 +11,10 @@ curated name and the package name are one).
 import sys
 import types
 
-_DOC = __doc__
-
 from polycc.verify.api import verify
 from polycc.verify.certify import VerifyReport
+
+_DOC = __doc__
 
 __all__ = ["VerifyReport", "verify"]
 

@@ -12,7 +12,14 @@ from typing import Callable
 import numpy as np
 
 from polycc.errors import PolyccError
-from polycc.verify.certify import VerifyReport, certify_all_levels, check_level, default_levels, read_family, read_stored
+from polycc.verify.certify import (
+    VerifyReport,
+    certify_all_levels,
+    check_level,
+    default_levels,
+    read_family,
+    read_stored,
+)
 
 
 def verify(path: str | Path, centers: np.ndarray, axes: np.ndarray, indices: np.ndarray, voxel_size: float,
@@ -60,9 +67,11 @@ def verify(path: str | Path, centers: np.ndarray, axes: np.ndarray, indices: np.
     rep = VerifyReport(voxels=len(idx))
     rep.stored = stored
     rep.grid_matches_cover = stored or bool(
-        voxel_size == fam.g and np.array_equal(np.asarray(origin), fam.origin) and np.array_equal(idx, fam.grid_indices))
+        voxel_size == fam.g and np.array_equal(np.asarray(origin), fam.origin)
+        and np.array_equal(idx, fam.grid_indices))
     if all_levels_certificate and N > 1 and not stored:
-        fails = certify_all_levels(fam, idx, progress=(lambda k: progress("certificate", k, N - 1)) if progress else None)
+        report = (lambda k: progress("certificate", k, N - 1)) if progress else None
+        fails = certify_all_levels(fam, idx, progress=report)
         rep.certificate_levels = N
         rep.certificate_failures = [{"n": n, "uncovered_voxels": u} for n, u in fails]
     rng = np.random.default_rng(seed)

@@ -271,7 +271,8 @@ class VerifyReport:
 
     @property
     def ok(self) -> bool:
-        return (not self.certificate_failures and all(l.voxels_uncovered == 0 and l.points_uncovered == 0 for l in self.levels))
+        return not self.certificate_failures and all(
+            lv.voxels_uncovered == 0 and lv.points_uncovered == 0 for lv in self.levels)
 
     def as_dict(self) -> dict:
         return {"ok": self.ok, "voxels": self.voxels, "grid_matches_cover": self.grid_matches_cover,

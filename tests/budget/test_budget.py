@@ -10,14 +10,13 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from polycc.testing.files import CHECKOUT as REPO
+from polycc.budget.reduce import reduce_planes
 from polycc.budget.select import Budget, plane_counts, select
 from polycc.cli import main
 from polycc.codegen.header import c_float, load_manifest_polytopes
+from polycc.geometry.halfplanes import hull_halfplanes, polytope_vertices
 from polycc.occupancy.grid import OccupancyGrid
-from polycc.budget.reduce import reduce_planes
-from polycc.geometry.halfplanes import polytope_vertices
-from polycc.geometry.halfplanes import hull_halfplanes
+from polycc.testing.files import CHECKOUT as REPO
 
 
 def random_hull(rng, n=25, scale=0.3):
@@ -55,7 +54,8 @@ def _check_cover(out, grid: OccupancyGrid):
     """Every corner of every occupied voxel satisfies all half-planes of some stored polytope."""
     polys = load_manifest_polytopes(out)
     lo = grid.lower_corners()
-    corners = np.concatenate([lo + grid.voxel_size * np.array([(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1]) for c in range(8)])
+    corners = np.concatenate([lo + grid.voxel_size * np.array([(c >> 0) & 1, (c >> 1) & 1,
+                                                               (c >> 2) & 1]) for c in range(8)])
     inside_any = np.zeros(len(lo), bool)
     for h in polys:
         ok = np.all(corners @ h[:, :3].T <= h[:, 3], axis=1).reshape(8, -1).all(axis=0)
@@ -88,14 +88,18 @@ def test_build_fits_budget_covers_every_voxel_and_compiles(tmp_path, built4, kb)
     assert _check_cover(out, grid).all()
     assert (out / "report.png").stat().st_size > 10_000
     src = out / "t.c"
-    src.write_text('#include "polytopes.h"\nint main(void) { return (int)polycc_scene.n_polys == (int)POLYCC_SCENE_N_POLYS ? 0 : 1; }\n')
-    cc = ["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", f"-I{REPO / 'firmware_app' / 'src'}", f"-I{out}"]
+    src.write_text('#include "polytopes.h"\nint main(void) { return (int)polycc_scene.n_polys == '
+                   '(int)POLYCC_SCENE_N_POLYS ? 0 : 1; }\n')
+    cc = ["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", f"-I{REPO / 'firmware_app' / 'src'}",
+          f"-I{out}"]
     subprocess.run([*cc, str(src), "-o", str(out / "t")], check=True)
     subprocess.run([str(out / "t")], check=True)
     if shutil.which("arm-none-eabi-gcc"):
-        subprocess.run(["arm-none-eabi-gcc", "-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-Os",
+        subprocess.run(["arm-none-eabi-gcc", "-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16",
+                        "-Os",
                         "-std=gnu11", "-Wall", "-Wdouble-promotion", "-Werror", "-fno-math-errno", "-ffp-contract=off",
-                        f"-I{REPO / 'firmware_app' / 'src'}", f"-I{out}", "-c", str(src), "-o", str(out / "t.o")], check=True)
+                        f"-I{REPO / 'firmware_app' / 'src'}", f"-I{out}", "-c", str(src), "-o", str(out / "t.o")],
+                            check=True)
 
 
 def test_byte_model_is_exact_and_within_budget(built4):

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from polycc.testing.files import gaussian_columns, write_ply
 from polycc.cli import main
 from polycc.errors import PolyccError
-from polycc.occupancy.floaters import floater_loss
 from polycc.occupancy.exact import voxelize
+from polycc.occupancy.floaters import floater_loss
 from polycc.scene.load import SceneOptions, load_scene
 from polycc.scene.readers import read_splats
+from polycc.testing.files import gaussian_columns, write_ply
 
 
 # ---------------------------------------------------------------------------- 1. scene settings
@@ -94,7 +94,8 @@ def test_sim_uses_the_builds_transform_and_sigma(transformed_build, capsys):
 ])
 def test_explicit_option_that_disagrees_with_the_build_is_an_error(transformed_build, capsys, opts, needle):
     scene, tf, out = transformed_build
-    for cmd in (["sim", str(out), "--start", "0.5,-0.9,0.8", "--goal", "1.5,-0.9,0.8"], ["verify", str(out), str(scene)]):
+    for cmd in (["sim", str(out), "--start", "0.5,-0.9,0.8", "--goal", "1.5,-0.9,0.8"],
+                ["verify", str(out), str(scene)]):
         assert main(cmd + opts) == 2
         err = capsys.readouterr().err.strip()
         assert needle in err and len(err.splitlines()) == 1, err

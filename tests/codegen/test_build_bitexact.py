@@ -14,12 +14,11 @@ import os
 import numpy as np
 import pytest
 
-from polycc.testing.files import SCENES
-from polycc.testing.bitexact import PARAMS, assert_bitexact, edge_states, states
-
-from polycc.onboard import barrier as B
 from polycc.cli import main
+from polycc.onboard import barrier as B
 from polycc.onboard.layout import scene_from_bytes
+from polycc.testing.bitexact import PARAMS, assert_bitexact, edge_states, states
+from polycc.testing.files import SCENES
 
 N_STATES = 100_000 if os.environ.get("CI") else 10_000
 

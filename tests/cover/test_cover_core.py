@@ -7,14 +7,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polycc.cover.clusters import build_clusters, neighbour_offsets
 from polycc.cover.build import build_cover
+from polycc.cover.clusters import build_clusters, neighbour_offsets
 from polycc.cover.family import CoverFamily
+from polycc.cover.merge import VoxelBoxQuery
+from polycc.cover.setcover import greedy_set_cover
 from polycc.errors import PolyccError
 from polycc.geometry.lattice import integer_planes, lattice_hull, voxel_corner_points, world_halfplanes
-from polycc.cover.merge import VoxelBoxQuery
 from polycc.occupancy.grid import OccupancyGrid
-from polycc.cover.setcover import greedy_set_cover
 from polycc.verify.certify import FamilyArrays, PolytopeSet, voxel_corners
 
 

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
 from polycc.cli import main
 from polycc.scene.writers import write_gaussian_ply
-
 from polycc.testing.files import SCENES  # noqa: E402
 
 SCENE_FILES = sorted(p.name for p in SCENES.glob("*") if p.suffix in (".ply", ".splat")) if SCENES.is_dir() else []

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -13,9 +12,8 @@ from polycc.demo.arenas import (
     rotation_to_z_up,
     tiled_room,
 )
-from polycc.scene.ellipsoids import Ellipsoids
 from polycc.errors import PolyccError
-
+from polycc.scene.ellipsoids import Ellipsoids
 from polycc.testing.files import SCENES  # noqa: E402
 
 

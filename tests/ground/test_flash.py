@@ -33,7 +33,8 @@ def _fake_firmware(root: Path, git: bool = False) -> Path:
 def test_flash_dry_run_prints_every_step(walls, tmp_path, capsys):
     d, _ = walls
     base = _fake_firmware(tmp_path / "cf")
-    rc = main(["flash", str(d), "--crazyflie-base", str(base), "--dry-run", "--no-flash", "--build-dir", str(tmp_path / "b")])
+    rc = main(["flash", str(d), "--crazyflie-base", str(base), "--dry-run", "--no-flash", "--build-dir",
+               str(tmp_path / "b")])
     out = capsys.readouterr().out
     assert "step 1: copy firmware_app/" in out and "build_info.json" in out
     assert "CRAZYFLIE_BASE=" in out and "arm-none-eabi-size" in out

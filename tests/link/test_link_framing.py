@@ -13,18 +13,7 @@ import struct
 import threading
 
 import pytest
-from polycc.testing.link_fake_model import FakeModel, host_frame
 
-from polycc.sim.crtp_device import (
-    CrtpDevice,
-    DeviceModel,
-    LogEntry,
-    ParamEntry,
-    ctype_from_log_type,
-    ctype_from_param_type,
-    pack_value,
-    unpack_value,
-)
 from polycc.errors import PolyccError
 from polycc.link.cpx_serial import (
     BAD_FRAME,
@@ -41,6 +30,17 @@ from polycc.link.cpx_serial import (
 )
 from polycc.link.crtp import CrtpPacket, FramingError, Port, make_header
 from polycc.link.udp import decode_datagram, encode_datagram, parse_udp_uri
+from polycc.sim.crtp_device import (
+    CrtpDevice,
+    DeviceModel,
+    LogEntry,
+    ParamEntry,
+    ctype_from_log_type,
+    ctype_from_param_type,
+    pack_value,
+    unpack_value,
+)
+from polycc.testing.link_fake_model import FakeModel, host_frame
 
 # host -> device: link source query, CRTP port 15 ch 1, payload 00
 GOLDEN_LINK_SOURCE = "ff041903fd001c"

@@ -22,9 +22,7 @@ import struct
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from polycc.testing.link_fake_model import FakeModel, host_frame
 
-from polycc.sim.crtp_device import CrtpDevice
 from polycc.link.cpx_serial import (
     HANDSHAKE,
     HANDSHAKE_BYTES,
@@ -34,6 +32,8 @@ from polycc.link.cpx_serial import (
     encode_frame,
 )
 from polycc.link.crtp import CrtpPacket, FramingError
+from polycc.sim.crtp_device import CrtpDevice
+from polycc.testing.link_fake_model import FakeModel, host_frame
 
 FAULTS = ("bad_checksum", "oversize", "truncated", "bad_cpx")
 

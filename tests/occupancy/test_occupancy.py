@@ -9,15 +9,16 @@ from hypothesis import strategies as st
 from scipy.optimize import lsq_linear
 
 from polycc.geometry.ellipsoid_box import boxes_inside, boxes_intersect, min_whitened_distance
-from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 from polycc.occupancy.exact import aabb_index_range, pack_keys, unpack_keys, voxelize
 from polycc.occupancy.grid import OccupancyGrid
+from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 
 
 def random_ellipsoids(n, rng, log_sigma=(np.log(1e-3), np.log(0.1)), span=0.5, k=1.0):
     q = rng.normal(size=(n, 4))
     q /= np.linalg.norm(q, axis=1)[:, None]
-    return Ellipsoids(rng.uniform(-span, span, (n, 3)), quaternion_to_rotation(q), np.exp(rng.uniform(*log_sigma, (n, 3))), k)
+    return Ellipsoids(rng.uniform(-span, span, (n, 3)), quaternion_to_rotation(q),
+                      np.exp(rng.uniform(*log_sigma, (n, 3))), k)
 
 
 def exact_min(M, c, lo, hi):

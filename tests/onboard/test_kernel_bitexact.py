@@ -7,7 +7,6 @@ in qemu-system-arm -M netduinoplus2 (semihosting).  Outputs are compared as uint
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 

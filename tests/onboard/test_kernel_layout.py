@@ -13,8 +13,23 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from polycc.errors import PolyccError
-from polycc.onboard.layout import CLUSTER_BYTES, CLUSTER_DTYPE, NORMAL_BYTES, NORMAL_DTYPE, PLANE_BYTES, PLANE_DTYPE, POLY_BYTES, POLY_DTYPE, ROOT_BYTES, SCENE_FORMAT, layout_bytes, n_clusters_for, pack_scene, scene_from_bytes
 from polycc.geometry.halfplanes import axis_box, hull_halfplanes, polytope_vertices
+from polycc.onboard.layout import (
+    CLUSTER_BYTES,
+    CLUSTER_DTYPE,
+    NORMAL_BYTES,
+    NORMAL_DTYPE,
+    PLANE_BYTES,
+    PLANE_DTYPE,
+    POLY_BYTES,
+    POLY_DTYPE,
+    ROOT_BYTES,
+    SCENE_FORMAT,
+    layout_bytes,
+    n_clusters_for,
+    pack_scene,
+    scene_from_bytes,
+)
 from polycc.testing.synthetic import pad_to_planes, random_hull_polytopes
 
 kffi = pytest.importorskip("polycc.sim.kernel_ffi")
@@ -125,7 +140,8 @@ def test_padding_keeps_the_polytopes():
     assert sum(len(h) for h in padded) == 200
     x = rng.uniform(-1, 11, (2000, 3))
     for a, b in zip(polys, padded):
-        assert np.array_equal(np.max(x @ a[:, :3].T - a[:, 3], axis=1) <= 0, np.max(x @ b[:, :3].T - b[:, 3], axis=1) <= 0)
+        assert np.array_equal(np.max(x @ a[:, :3].T - a[:, 3], axis=1) <= 0,
+                              np.max(x @ b[:, :3].T - b[:, 3], axis=1) <= 0)
     assert pack_scene(padded, merge_duplicates=False).n_planes == 200
     assert pack_scene(padded).n_planes == sum(len(h) for h in polys)
 

@@ -13,9 +13,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from polycc.geometry.halfplanes import axis_box
 from polycc.onboard import barrier as B
 from polycc.onboard.layout import pack_scene
-from polycc.geometry.halfplanes import axis_box
 from polycc.testing.synthetic import random_hull_polytopes
 
 kffi = pytest.importorskip("polycc.sim.kernel_ffi")

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 from polycc.errors import PolyccError
+from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 from polycc.scene.writers import (
     GAUSSIAN_PLY_PROPERTIES,
     SH_C0,

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from polycc.testing.files import gaussian_columns, write_ply
 from polycc.cli import main
 from polycc.scene.load import SceneOptions, load_scene
+from polycc.testing.files import gaussian_columns, write_ply
 
 
 def test_gaussian_ply_activations(tmp_path):
@@ -19,7 +19,8 @@ def test_gaussian_ply_activations(tmp_path):
     e = s.ellipsoids
     assert s.stats.read == s.stats.kept == 50
     # sigma = exp(scale) as a set per splat (order of axes is the rotation's columns)
-    np.testing.assert_allclose(np.sort(e.sigmas, 1), np.sort(np.exp(np.stack([cols[f"scale_{i}"] for i in range(3)], 1)), 1), rtol=1e-6)
+    expect = np.exp(np.stack([cols[f"scale_{i}"] for i in range(3)], 1))
+    np.testing.assert_allclose(np.sort(e.sigmas, 1), np.sort(expect, 1), rtol=1e-6)
     np.testing.assert_allclose(e.opacity, 1 / (1 + np.exp(-cols["opacity"])), rtol=1e-5)
     # covariance = R S S^T R^T with the normalised quaternion
     q = np.stack([cols[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
@@ -36,7 +37,8 @@ def test_gaussian_ply_activations(tmp_path):
 
 def test_property_order_and_extra_properties_do_not_matter(tmp_path):
     cols = gaussian_columns(20, seed=3)
-    shuffled = {k: cols[k] for k in ["rot_2", "scale_1", "z", "opacity", "rot_0", "x", "scale_2", "rot_3", "y", "scale_0", "rot_1"]}
+    shuffled = {k: cols[k] for k in ["rot_2", "scale_1", "z", "opacity", "rot_0", "x", "scale_2", "rot_3", "y",
+                                     "scale_0", "rot_1"]}
     shuffled["nx"] = np.zeros(20)
     shuffled["f_dc_0"] = np.ones(20)
     a = load_scene(write_ply(tmp_path / "a.ply", cols)).ellipsoids
@@ -104,7 +106,8 @@ def test_crop_keeps_straddling_ellipsoids(tmp_path):
     assert s.stats.kept == 2 and s.stats.cropped == 1  # the one at x=0.95 (radius 0.1) straddles x=0.9
 
 
-@pytest.mark.parametrize("case", ["truncated", "no_xyz", "no_scale", "no_rot", "nan", "zero_quat", "empty_after", "ext", "missing", "splat_trunc"])
+@pytest.mark.parametrize("case", ["truncated", "no_xyz", "no_scale", "no_rot", "nan", "zero_quat", "empty_after",
+                                  "ext", "missing", "splat_trunc"])
 def test_bad_input_is_one_line_error_exit_2(tmp_path, capsys, case):
     cols = gaussian_columns(40, seed=1)
     extra: list[str] = []
@@ -156,7 +159,8 @@ def test_drop_invalid_counts_what_it_drops(tmp_path):
     for i in range(4):
         cols[f"rot_{i}"][7] = 0.0
     s = load_scene(write_ply(tmp_path / "t.ply", cols), SceneOptions(drop_invalid=True))
-    assert (s.stats.read, s.stats.invalid, s.stats.invalid_nonfinite, s.stats.invalid_quaternion, s.stats.kept) == (40, 2, 1, 1, 38)
+    st = s.stats
+    assert (st.read, st.invalid, st.invalid_nonfinite, st.invalid_quaternion, st.kept) == (40, 2, 1, 1, 38)
 
 
 def test_splat_reader(tmp_path):

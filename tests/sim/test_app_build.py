@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from polycc.sim.app_ffi import FIRMWARE_WARN_FLAGS, SHIMS, SRC
 from polycc import resources
 from polycc.codegen.header import write_outputs
-from polycc.onboard.layout import SCENE_FORMAT
 from polycc.geometry.halfplanes import axis_box
+from polycc.onboard.layout import SCENE_FORMAT
+from polycc.sim.app_ffi import FIRMWARE_WARN_FLAGS, SHIMS, SRC
 
 APP = resources.firmware_app()
 ARM_FLAGS = ["-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-Os"]
@@ -30,7 +30,8 @@ def scene_dir(tmp_path_factory) -> Path:
 
 
 def _compile(cc: str, flags: list[str], header_dir: Path, out: Path, src: Path = SRC / "polycc_app.c"):
-    cmd = [cc, *flags, *FIRMWARE_WARN_FLAGS, f"-I{SHIMS}", f"-I{SRC}", f"-I{header_dir}", "-c", str(src), "-o", str(out)]
+    cmd = [cc, *flags, *FIRMWARE_WARN_FLAGS, f"-I{SHIMS}", f"-I{SRC}", f"-I{header_dir}", "-c", str(src), "-o",
+           str(out)]
     return subprocess.run(cmd, capture_output=True, text=True)
 
 

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from polycc.onboard.app import STATUS_NAMES
-from polycc.sim.app_ffi import SRC, AppSim
 from polycc.codegen.header import write_outputs
 from polycc.geometry.halfplanes import axis_box
+from polycc.onboard.app import STATUS_NAMES
+from polycc.sim.app_ffi import SRC, AppSim
 
 LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1)]
 # PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09

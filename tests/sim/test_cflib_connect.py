@@ -16,11 +16,11 @@ from contextlib import ExitStack
 from unittest import mock
 
 import pytest
-from polycc.testing.cflib_session import run_with_timeout, scenario
-from polycc.testing.link_fake_model import FakeModel
 
 from polycc.sim.crtp_device import CrtpDevice
 from polycc.sim.device_server import SerialDeviceServer, UdpDeviceServer
+from polycc.testing.cflib_session import run_with_timeout, scenario
+from polycc.testing.link_fake_model import FakeModel
 
 cflib_crtp = pytest.importorskip("cflib.crtp", reason="cflib is not installed (pip install 'polycc[crazyflie]')")
 from cflib.crtp.serialdriver import SerialDriver  # noqa: E402

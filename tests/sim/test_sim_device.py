@@ -25,13 +25,13 @@ from unittest import mock
 import numpy as np
 import pytest
 
+from polycc.cli import main
+from polycc.codegen.header import write_outputs
+from polycc.geometry.halfplanes import axis_box
 from polycc.sim.crtp_device import CrtpDevice
 from polycc.sim.device_server import SerialDeviceServer, UdpDeviceServer
 from polycc.sim.sitl_device import SitlDeviceModel, decode_app_status
-from polycc.cli import main
 from polycc.testing.files import CHECKOUT
-from polycc.codegen.header import write_outputs
-from polycc.geometry.halfplanes import axis_box
 
 # Two walls with a 0.6 m gap at y in [-0.3, 0.3]; the flight goes through it along +x.
 WALLS = [((0.0, -1.5, 0.0), (0.6, -0.3, 1.5)), ((0.0, 0.3, 0.0), (0.6, 1.5, 1.5))]
@@ -78,7 +78,8 @@ def test_params_and_logs_are_the_app_variables(model):
 
 
 @pytest.mark.parametrize("kind, values, expect", [
-    ("hl_takeoff", {"group_mask": 0, "height": 1.2, "yaw": 0.0, "use_current_yaw": 1, "duration": 2.0}, (-0.6, 0.05, 1.2)),
+    ("hl_takeoff", {"group_mask": 0, "height": 1.2, "yaw": 0.0, "use_current_yaw": 1, "duration": 2.0},
+     (-0.6, 0.05, 1.2)),
     ("hl_go_to", {"group_mask": 0, "relative": 1, "linear": 0, "x": 0.3, "y": 0.0, "z": -0.2, "yaw": 0.0,
                   "duration": 1.0}, (-0.3, 0.05, 0.5)),
     ("position", {"x": -0.5, "y": 0.0, "z": 0.9, "yaw": 0.0}, (-0.5, 0.0, 0.9)),
@@ -139,6 +140,7 @@ cflib_crtp = pytest.importorskip("cflib.crtp", reason="cflib is not installed (p
 from cflib.crazyflie import Crazyflie  # noqa: E402
 from cflib.crazyflie.syncCrazyflie import SyncCrazyflie  # noqa: E402
 from cflib.crtp.serialdriver import SerialDriver  # noqa: E402
+
 from polycc.testing.cflib_session import run_with_timeout, scenario  # noqa: E402
 
 

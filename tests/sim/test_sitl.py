@@ -8,15 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from polycc.sim.dynamics import CrazyflieLike, CrazyflieParams, SingleIntegrator
-from polycc.sim.sitl import FlightConfig, Simulator, random_pairs
-from polycc.sim.clearance import Clearance, densify, point_ellipsoid_distance
-from polycc.onboard import barrier
-from polycc.onboard.barrier import Params
 from polycc.cli import main
 from polycc.codegen.header import write_outputs
-from polycc.scene.ellipsoids import Ellipsoids
 from polycc.geometry.halfplanes import axis_box
+from polycc.onboard import barrier
+from polycc.onboard.barrier import Params
+from polycc.scene.ellipsoids import Ellipsoids
+from polycc.sim.clearance import Clearance, densify, point_ellipsoid_distance
+from polycc.sim.dynamics import CrazyflieLike, CrazyflieParams, SingleIntegrator
+from polycc.sim.sitl import FlightConfig, Simulator, random_pairs
 
 # Two walls with a 0.6 m gap at y in [-0.3, 0.3]; the flight goes through it along +x.
 WALLS = [((0.0, -1.5, 0.0), (0.6, -0.3, 1.5)), ((0.0, 0.3, 0.0), (0.6, 1.5, 1.5))]

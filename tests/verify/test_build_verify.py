@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from polycc.testing.files import SCENES
 from polycc.cli import main
 from polycc.scene.load import load_scene
+from polycc.testing.files import SCENES
 
 SCENE_FILES = sorted(p.name for p in SCENES.glob("*")) if SCENES.is_dir() else []
 SCENE_FILES = [f for f in SCENE_FILES if f.endswith((".ply", ".splat"))]
@@ -26,7 +26,8 @@ def build_and_verify(tmp_path, name, kb, capsys, voxel="0.03"):
     scale = metric_scale(name)
     out = tmp_path / f"{name}-{kb}"
     common = ["--scale", str(scale), "--voxel", voxel]
-    assert main(["build", str(SCENES / name), "--flash-kb", str(kb), "--mc-samples", "20000", "-o", str(out), *common]) == 0
+    assert main(["build", str(SCENES / name), "--flash-kb", str(kb), "--mc-samples", "20000", "-o", str(out),
+                 *common]) == 0
     capsys.readouterr()
     rc = main(["verify", str(out), str(SCENES / name), "--min-samples", "200000", "--mc-samples", "20000", *common])
     last = capsys.readouterr().out.strip().splitlines()[-1]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -10,12 +9,11 @@ from hypothesis import strategies as st
 
 from polycc.cli import main
 from polycc.cover.build import build_cover
-from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 from polycc.occupancy.exact import voxelize
 from polycc.occupancy.grid import OccupancyGrid
+from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 from polycc.scene.writers import write_gaussian_ply
 from polycc.verify.certify import FamilyArrays, certify_all_levels, check_level, read_family, sample_ellipsoids
-
 
 
 def random_ellipsoids(n, seed, span=0.3, log_sigma=(np.log(0.003), np.log(0.06))):

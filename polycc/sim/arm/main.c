@@ -1,7 +1,7 @@
 /*
  * Bare-metal bit-exactness test of the polycc kernel (qemu -M netduinoplus2, semihosting).
  *
- * Reads  scene.bin   the flat scene image of polycc/scene_layout.py (header, clusters, polys, planes,
+ * Reads  scene.bin   the flat scene image of polycc/onboard/layout.py (header, clusters, polys, planes,
  *                    normals)
  *        states.bin  5 float params (kappa, radius, beta, c_clf, v_max), uint32 n, then n records
  *                    of 6 floats (x[3], goal[3])
