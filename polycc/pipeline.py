@@ -183,6 +183,8 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
     return {
         "scene_settings": rec, "floater_line": floater_text(occ.stats) or "none (--min-splats-per-voxel 1)",
         "kappa": options.kappa, "budget_bytes": budget.flash_bytes, "max_planes": min(best.caps.values()),
+        "worst_cycles": int(np.ceil(us["worst_us"] * cycle_model.CPU_HZ / 1e6)),
+        "typical_cycles": int(np.ceil(us["typical_us"] * cycle_model.CPU_HZ / 1e6)),
         "binding": binding,
         "conservativeness_text": f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% CI)",
         "options": opts, "transform": None if identity else rec["world_matrix"],

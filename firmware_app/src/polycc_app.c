@@ -1,18 +1,24 @@
 /*
  * polycc_app.c -- Crazyflie app layer: certified polytope CBF safety filter around a CLF
- * go-to-goal controller, flying world-frame velocity setpoints.
+ * go-to-goal controller, flying world-frame velocity setpoints (states: polycc_app.h).
  *
  * The only polycc C file that includes firmware headers.  The host SITL compiles this very
- * file against declaration shims (polycc/sim/shims/) with the same flags.
+ * file against declaration shims (polycc/sim/shims/) with the same flags, and the real-firmware
+ * SITL (polycc/sim/firmware/) compiles it into the CrazySim firmware.
  *
- * Each tick (polycc_app_tick, at param polycc.rateHz, default 500 Hz):
- *   1. reads stateEstimate.x/y/z through the log API (and kalman.varX/Y/Z when present);
- *   2. runs polycc_step() of the kernel on the generated scene (polytopes.h), with the speed
+ * Each tick (polycc_app_tick, at param polycc.rateHz, default 500 Hz, lowered when the scene's
+ * certified worst case needs it):
+ *   1. answers app-channel packets (heartbeats) with the app's status;
+ *   2. decides whether it may have control: enabled, flying (supervisor), the high-level
+ *      commander idle or done, PID controller, link up;
+ *   3. reads stateEstimate.x/y/z through the log API (and kalman.varX/Y/Z when present);
+ *   4. runs polycc_step() of the kernel on the generated scene (polytopes.h), with the speed
  *      limit lowered near obstacles by the braking term (polycc_app.h, POLYCC_APP_BRAKE_*);
- *   3. sends a world-frame velocity setpoint with commanderSetSetpoint, every tick while
- *      enabled (so the commander's 500 ms / 2 s watchdog never fires);
- *   a bad or stale estimate, psi < 0 or a kernel refusal sends zero velocity (hover in place)
- *   and sets polycc.status; disabling relaxes the commander priority once.
+ *   5. sends a world-frame velocity setpoint with commanderSetSetpoint at priority EXTRX, every
+ *      tick while engaged (so the commander's 500 ms / 2 s watchdog never fires);
+ *   a bad or stale estimate, psi < 0 or a kernel refusal holds the position where it began.
+ *   Leaving control goes through the high-level commander (hold, or land on link loss), never
+ *   through a stop setpoint.
  *
  * Build: -ffp-contract=off (bit-exact kernel) and -fno-math-errno; see src/Kbuild.
  */
@@ -22,10 +28,15 @@
 #include <string.h>
 
 #include "app.h"
+#include "app_channel.h"
 #include "commander.h"
+#include "controller.h"
+#include "crtp.h"
+#include "crtp_commander_high_level.h"
 #include "FreeRTOS.h"
 #include "log.h"
 #include "param.h"
+#include "supervisor.h"
 #include "task.h"
 #include "usec_time.h"
 
@@ -50,11 +61,14 @@
 #ifndef POLYCC_SCENE_KAPPA
 #error "polytopes.h does not define POLYCC_SCENE_KAPPA; regenerate it with `polycc build`"
 #endif
+#ifndef POLYCC_SCENE_WORST_CYCLES
+#error "polytopes.h does not define POLYCC_SCENE_WORST_CYCLES; regenerate it with `polycc build`"
+#endif
 
-/* Commander priority of the app's setpoints: above the high-level commander, equal to CRTP
- * setpoints from a ground station (the newest wins), below an external receiver. */
+/* Commander priority of the app's setpoints: above the high-level commander and above CRTP
+ * setpoints from a ground station, which are ignored while the app is engaged. */
 #ifndef POLYCC_APP_PRIORITY
-#define POLYCC_APP_PRIORITY COMMANDER_PRIORITY_CRTP
+#define POLYCC_APP_PRIORITY COMMANDER_PRIORITY_EXTRX
 #endif
 
 /* ---- parameter group polycc (written by the param task; snapshotted once per tick) ---- */
@@ -67,10 +81,21 @@ static uint16_t pRateHz;
 static float lPsi, lUx, lUy, lUz;
 static uint8_t lActive, lStatus;
 static uint32_t lEvalUs;
+static uint16_t lRate;
 
 /* ---- state ---- */
-static logVarId_t idX, idY, idZ, idVarX, idVarY, idVarZ;
-static bool haveEstimate, haveVariance, wasEnabled;
+static logVarId_t idX, idY, idZ, idVx, idVy, idVz, idYaw, idVarX, idVarY, idVarZ;
+static bool haveEstimate, haveVelocity, haveYaw, haveVariance;
+static bool engaged;     /* the app streams setpoints and owns the vehicle */
+static bool holding;     /* a fallback holds holdPos */
+static float holdPos[3]; /* where the fallback began */
+static float lastGood[3];
+static bool haveLastGood;
+static bool heartbeatSeen;
+static uint32_t lastHeartbeat; /* tick */
+static bool linkLostLatched; /* the last engagement ended in a link-loss landing (cleared by enable) */
+static logVarId_t idThrust;
+static bool haveThrust;
 static polycc_app_trace_t trace;
 static uint32_t lastBits[3];
 static uint32_t sameTicks; /* ms for which the estimate bits did not change */
@@ -88,12 +113,42 @@ static bool coordOk(float v)
     return v >= -POLYCC_APP_POS_LIMIT && v <= POLYCC_APP_POS_LIMIT; /* false for NaN */
 }
 
-/* rateHz clamped to [POLYCC_APP_MIN_RATE_HZ, tick rate], rounded to whole ticks. */
+/* Shortest period (ticks) at which the scene's certified worst case fits the CPU share. */
+static uint32_t minPeriodTicks(void)
+{
+    const uint64_t perTick = (uint64_t)POLYCC_APP_CPU_HZ / (uint64_t)configTICK_RATE_HZ;
+    const uint64_t need = (uint64_t)POLYCC_SCENE_WORST_CYCLES * 100u;
+    const uint64_t avail = perTick * POLYCC_APP_CPU_SHARE_PERCENT;
+    uint64_t t = (need + avail - 1u) / avail;
+    return t < 1u ? 1u : (uint32_t)t;
+}
+
+/* rateHz clamped to [POLYCC_APP_MIN_RATE_HZ, tick rate], rounded to whole ticks, and lowered
+ * until the worst case fits; lRate logs the rate it gives. */
 static uint32_t periodTicks(uint16_t rateHz)
 {
     uint32_t r = rateHz < POLYCC_APP_MIN_RATE_HZ ? POLYCC_APP_MIN_RATE_HZ : rateHz;
     uint32_t t = (configTICK_RATE_HZ + r / 2u) / r;
-    return t < 1u ? 1u : t;
+    uint32_t tmin = minPeriodTicks();
+    if (t < 1u) {
+        t = 1u;
+    }
+    if (t < tmin) {
+        t = tmin;
+    }
+    lRate = (uint16_t)(configTICK_RATE_HZ / t);
+    return t;
+}
+
+static bool tooSlow(void)
+{
+    return minPeriodTicks() > configTICK_RATE_HZ / POLYCC_APP_MIN_RATE_HZ;
+}
+
+static void send(void)
+{
+    commanderSetSetpoint(&setpoint, POLYCC_APP_PRIORITY);
+    engaged = true;
 }
 
 static void sendVelocity(float vx, float vy, float vz)
@@ -108,13 +163,141 @@ static void sendVelocity(float vx, float vy, float vz)
     setpoint.velocity.z = vz;
     setpoint.attitudeRate.yaw = 0.0f;
     setpoint.velocity_body = false; /* world frame */
-    commanderSetSetpoint(&setpoint, POLYCC_APP_PRIORITY);
+    send();
     lUx = vx;
     lUy = vy;
     lUz = vz;
+    holding = false;
 }
 
-/* Estimate check; returns POLYCC_STATUS_OK or the reason to hover. */
+/* Position hold at the point where the fallback began (x: the estimate now, if valid). */
+static void holdPosition(const float *x)
+{
+    if (!holding) {
+        const float *p = x != 0 ? x : (haveLastGood ? lastGood : 0);
+        if (p == 0) {
+            /* no estimate was ever valid: nothing to hold, and nothing was sent before either */
+            return;
+        }
+        memcpy(holdPos, p, sizeof holdPos);
+        holding = true;
+    }
+    memset(&setpoint, 0, sizeof setpoint);
+    setpoint.mode.x = modeAbs;
+    setpoint.mode.y = modeAbs;
+    setpoint.mode.z = modeAbs;
+    setpoint.mode.yaw = modeVelocity;
+    setpoint.position.x = holdPos[0];
+    setpoint.position.y = holdPos[1];
+    setpoint.position.z = holdPos[2];
+    setpoint.attitudeRate.yaw = 0.0f;
+    send();
+    lUx = 0.0f;
+    lUy = 0.0f;
+    lUz = 0.0f;
+}
+
+static void readVector(logVarId_t a, logVarId_t b, logVarId_t c, bool have, float out[3])
+{
+    out[0] = have ? logGetFloat(a) : 0.0f;
+    out[1] = have ? logGetFloat(b) : 0.0f;
+    out[2] = have ? logGetFloat(c) : 0.0f;
+}
+
+/* Give the vehicle to the high-level commander, holding position: go_to the stopping point of
+ * a POLYCC_APP_HANDOVER_ACC deceleration (no further than half the last clearance), then relax
+ * the priority.  If the high-level commander refuses, the app keeps holding the position itself. */
+static void handOverHold(void)
+{
+    float x[3], v[3], yaw = 0.0f, s, d, T;
+    int i;
+    readVector(idX, idY, idZ, haveEstimate, x);
+    readVector(idVx, idVy, idVz, haveVelocity, v);
+    if (!haveEstimate || !coordOk(x[0]) || !coordOk(x[1]) || !coordOk(x[2])) {
+        if (!haveLastGood) {
+            commanderRelaxPriority();
+            engaged = false;
+            return;
+        }
+        memcpy(x, lastGood, sizeof x);
+        v[0] = v[1] = v[2] = 0.0f;
+    }
+    if (haveYaw) {
+        yaw = logGetFloat(idYaw) * (3.14159265358979f / 180.0f);
+    }
+    s = sqrtf(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    d = s * s / (2.0f * POLYCC_APP_HANDOVER_ACC);
+    if (trace.calls > 0u && d > 0.5f * trace.out.psi) {
+        d = trace.out.psi > 0.0f ? 0.5f * trace.out.psi : 0.0f;
+    }
+    T = s > 0.0f ? 2.0f * d / s : 0.0f;
+    if (!(T >= POLYCC_APP_HANDOVER_MIN_S)) {
+        T = POLYCC_APP_HANDOVER_MIN_S;
+    }
+    for (i = 0; i < 3; ++i) {
+        trace.handover[i] = s > 0.0f ? x[i] + v[i] * (d / s) : x[i];
+    }
+    trace.handover[3] = T;
+    if (crtpCommanderHighLevelGoTo(trace.handover[0], trace.handover[1], trace.handover[2], yaw, T, false) != 0) {
+        holdPosition(haveEstimate ? x : 0);
+        return;
+    }
+    trace.handovers += 1u;
+    commanderRelaxPriority();
+    engaged = false;
+    holding = false;
+}
+
+/* Link lost: a high-level landing from here, then the priority relaxed; enable is cleared so a
+ * reconnecting ground does not take over mid-landing. */
+static void handOverLand(void)
+{
+    float x[3], T;
+    readVector(idX, idY, idZ, haveEstimate, x);
+    T = coordOk(x[2]) && x[2] > 0.0f ? x[2] / POLYCC_APP_LAND_SPEED : POLYCC_APP_LAND_MIN_S;
+    if (!(T >= POLYCC_APP_LAND_MIN_S)) {
+        T = POLYCC_APP_LAND_MIN_S;
+    }
+    if (crtpCommanderHighLevelLand(0.0f, T) != 0) {
+        holdPosition(haveEstimate && coordOk(x[0]) ? x : 0);
+        return;
+    }
+    trace.landings += 1u;
+    commanderRelaxPriority();
+    engaged = false;
+    holding = false;
+    pEnable = 0u;
+}
+
+/* Answers every app-channel packet with the status (polycc_app.h: POLYCC_APP_REPLY_BYTES). */
+static void serviceAppChannel(void)
+{
+    uint8_t rx[APPCHANNEL_MTU], tx[APPCHANNEL_MTU];
+    size_t n;
+    while ((n = appchannelReceiveDataPacket(rx, sizeof rx, 0)) > 0u) {
+        float x[3];
+        size_t echo = n > APPCHANNEL_MTU - POLYCC_APP_REPLY_BYTES ? APPCHANNEL_MTU - POLYCC_APP_REPLY_BYTES : n;
+        heartbeatSeen = true;
+        lastHeartbeat = xTaskGetTickCount();
+        readVector(idX, idY, idZ, haveEstimate, x);
+        tx[0] = lStatus;
+        tx[1] = pEnable;
+        memcpy(tx + 2, &lPsi, 4);
+        memcpy(tx + 6, x, 12);
+        memcpy(tx + POLYCC_APP_REPLY_BYTES, rx, echo);
+        (void)appchannelSendDataPacket(tx, POLYCC_APP_REPLY_BYTES + echo);
+    }
+}
+
+static bool linkLost(void)
+{
+    if (!crtpIsConnected()) {
+        return true;
+    }
+    return heartbeatSeen && (xTaskGetTickCount() - lastHeartbeat) > M2T(POLYCC_APP_LINK_TIMEOUT_MS);
+}
+
+/* Estimate check; returns POLYCC_STATUS_OK or the reason to hold. */
 static uint8_t readEstimate(float x[3], uint32_t period)
 {
     int i;
@@ -165,7 +348,12 @@ void polycc_app_init(void)
     lActive = 0u;
     lStatus = POLYCC_STATUS_DISABLED;
     lEvalUs = 0u;
-    wasEnabled = false;
+    engaged = false;
+    holding = false;
+    haveLastGood = false;
+    heartbeatSeen = false;
+    lastHeartbeat = 0u;
+    linkLostLatched = false;
     sameTicks = 0u;
     lastBits[0] = 0xffffffffu; /* a NaN pattern the estimate never starts with */
     lastBits[1] = 0xffffffffu;
@@ -173,12 +361,21 @@ void polycc_app_init(void)
     idX = logGetVarId("stateEstimate", "x");
     idY = logGetVarId("stateEstimate", "y");
     idZ = logGetVarId("stateEstimate", "z");
+    idVx = logGetVarId("stateEstimate", "vx");
+    idVy = logGetVarId("stateEstimate", "vy");
+    idVz = logGetVarId("stateEstimate", "vz");
+    idYaw = logGetVarId("stateEstimate", "yaw");
+    idThrust = logGetVarId("stabilizer", "thrust");
     idVarX = logGetVarId("kalman", "varX");
     idVarY = logGetVarId("kalman", "varY");
     idVarZ = logGetVarId("kalman", "varZ");
     haveEstimate = logVarIdIsValid(idX) && logVarIdIsValid(idY) && logVarIdIsValid(idZ);
+    haveVelocity = logVarIdIsValid(idVx) && logVarIdIsValid(idVy) && logVarIdIsValid(idVz);
+    haveYaw = logVarIdIsValid(idYaw);
+    haveThrust = logVarIdIsValid(idThrust);
     haveVariance = logVarIdIsValid(idVarX) && logVarIdIsValid(idVarY) && logVarIdIsValid(idVarZ);
     memset(&trace, 0, sizeof trace);
+    (void)periodTicks(pRateHz);
 }
 
 const polycc_app_trace_t *polycc_app_trace(void)
@@ -204,6 +401,41 @@ static float brakeSpeed(float vmax)
     return s < vmax ? s : vmax;
 }
 
+/* Why the app may not take control now (POLYCC_STATUS_OK if it may). */
+static uint8_t mayTakeControl(void)
+{
+    if (tooSlow()) {
+        return POLYCC_STATUS_TOO_SLOW;
+    }
+    if (supervisorIsLocked() || supervisorIsCrashed() || supervisorIsTumbled()) {
+        return POLYCC_STATUS_SUPERVISOR;
+    }
+    if (controllerGetType() != ControllerTypePID) {
+        return POLYCC_STATUS_BAD_CONTROLLER;
+    }
+    if (engaged) {
+        return POLYCC_STATUS_OK;
+    }
+    /* on the ground, or motors off (e.g. just landed: the supervisor's flying flag lags 2 s) */
+    if (!supervisorIsFlying() || (haveThrust && !(logGetFloat(idThrust) > 0.0f))) {
+        return POLYCC_STATUS_NOT_FLYING;
+    }
+    if (!crtpCommanderHighLevelIsStopped() && !crtpCommanderHighLevelIsTrajectoryFinished()) {
+        return POLYCC_STATUS_WAIT_HL;
+    }
+    return POLYCC_STATUS_OK;
+}
+
+static void idle(uint8_t status)
+{
+    lStatus = status;
+    lActive = 0u;
+    lUx = 0.0f;
+    lUy = 0.0f;
+    lUz = 0.0f;
+    sameTicks = 0u;
+}
+
 uint32_t polycc_app_tick(void)
 {
     polycc_params_t prm;
@@ -213,20 +445,44 @@ uint32_t polycc_app_tick(void)
     uint8_t status;
     uint32_t period = periodTicks(pRateHz);
 
+    serviceAppChannel();
     if (pEnable == 0u) {
-        if (wasEnabled) {
-            commanderRelaxPriority();
-            wasEnabled = false;
+        if (engaged) {
+            handOverHold();
         }
-        lStatus = POLYCC_STATUS_DISABLED;
-        lActive = 0u;
-        lUx = 0.0f;
-        lUy = 0.0f;
-        lUz = 0.0f;
-        sameTicks = 0u;
+        if (!engaged) {
+            idle(linkLostLatched ? POLYCC_STATUS_LINK_LOST : POLYCC_STATUS_DISABLED);
+            return period;
+        }
+        lStatus = POLYCC_STATUS_DISABLED; /* the high-level commander refused: still holding */
+        holdPosition(0);
         return period;
     }
-    wasEnabled = true;
+    linkLostLatched = false;
+    status = mayTakeControl();
+    if (status == POLYCC_STATUS_SUPERVISOR) {
+        if (engaged) { /* the supervisor stops the motors itself; hand the priority back */
+            commanderRelaxPriority();
+            engaged = false;
+        }
+        idle(status);
+        return period;
+    }
+    if (status != POLYCC_STATUS_OK) {
+        if (engaged) {
+            handOverHold();
+        }
+        idle(status);
+        return period;
+    }
+    if (linkLost()) {
+        if (engaged) {
+            handOverLand();
+            linkLostLatched = !engaged;
+        }
+        idle(POLYCC_STATUS_LINK_LOST);
+        return period;
+    }
 
     prm.kappa = POLYCC_SCENE_KAPPA;
     prm.radius = pRadius;
@@ -241,9 +497,11 @@ uint32_t polycc_app_tick(void)
     if (status != POLYCC_STATUS_OK) {
         lActive = 0u;
         lStatus = status;
-        sendVelocity(0.0f, 0.0f, 0.0f);
+        holdPosition(status == POLYCC_STATUS_STALE_ESTIMATE ? x : 0);
         return period;
     }
+    memcpy(lastGood, x, sizeof lastGood);
+    haveLastGood = true;
 
     prm.v_max = brakeSpeed(pVmax);
 
@@ -262,11 +520,11 @@ uint32_t polycc_app_tick(void)
     if (out.flags & POLYCC_FLAG_INVALID) {
         lStatus = POLYCC_STATUS_KERNEL_INVALID;
         lActive = 0u;
-        sendVelocity(0.0f, 0.0f, 0.0f);
+        holdPosition(x);
     } else if (out.flags & POLYCC_FLAG_INSIDE) {
         lStatus = POLYCC_STATUS_INSIDE;
         lActive = 0u;
-        sendVelocity(0.0f, 0.0f, 0.0f);
+        holdPosition(x);
     } else {
         lStatus = POLYCC_STATUS_OK;
         sendVelocity(out.u[0], out.u[1], out.u[2]);
@@ -278,8 +536,9 @@ void appMain(void)
 {
     TickType_t lastWake;
     polycc_app_init();
-    DEBUG_PRINT("polycc: %u polytopes, %u half-planes; set polycc.enable=1 to fly\n",
-                (unsigned)POLYCC_SCENE_N_POLYS, (unsigned)POLYCC_SCENE_N_PLANES);
+    DEBUG_PRINT("polycc: %u polytopes, %u half-planes, worst case %u cycles, %u Hz; set polycc.enable=1 in the air\n",
+                (unsigned)POLYCC_SCENE_N_POLYS, (unsigned)POLYCC_SCENE_N_PLANES, (unsigned)POLYCC_SCENE_WORST_CYCLES,
+                (unsigned)lRate);
     lastWake = xTaskGetTickCount();
     for (;;) {
         TickType_t period = (TickType_t)polycc_app_tick();
@@ -291,7 +550,8 @@ void appMain(void)
  * polycc safety filter.  Lengths in metres, speeds in m/s, world frame.
  */
 PARAM_GROUP_START(polycc)
-/** @brief Nonzero: fly to the goal through the filter (streams setpoints); 0 releases control (default 0) */
+/** @brief Nonzero: fly to the goal through the filter once flying and the high-level commander is done; 0 hands
+ * the vehicle back to the high-level commander holding position (default 0) */
 PARAM_ADD(PARAM_UINT8, enable, &pEnable)
 /** @brief Goal x, m (default 0) */
 PARAM_ADD(PARAM_FLOAT, goalX, &pGoalX)
@@ -307,7 +567,8 @@ PARAM_ADD(PARAM_FLOAT, beta, &pBeta)
 PARAM_ADD(PARAM_FLOAT, clfGain, &pClfGain)
 /** @brief Agent radius r, m (default 0.1) */
 PARAM_ADD(PARAM_FLOAT, radius, &pRadius)
-/** @brief Loop rate, Hz (10..1000; period rounded to whole 1 ms ticks; default 500) */
+/** @brief Requested loop rate, Hz (10..1000, whole 1 ms ticks, lowered until the scene's worst case fits;
+ * log polycc.rate is the rate used; default 500) */
 PARAM_ADD(PARAM_UINT16, rateHz, &pRateHz)
 PARAM_GROUP_STOP(polycc)
 
@@ -317,7 +578,7 @@ PARAM_GROUP_STOP(polycc)
 LOG_GROUP_START(polycc)
 /** @brief Certified barrier psi at the estimate, m (>= 0: the agent ball is clear) */
 LOG_ADD(LOG_FLOAT, psi, &lPsi)
-/** @brief Commanded world-frame velocity x, m/s */
+/** @brief Commanded world-frame velocity x, m/s (0 while holding) */
 LOG_ADD(LOG_FLOAT, ux, &lUx)
 /** @brief Commanded world-frame velocity y, m/s */
 LOG_ADD(LOG_FLOAT, uy, &lUy)
@@ -327,6 +588,10 @@ LOG_ADD(LOG_FLOAT, uz, &lUz)
 LOG_ADD(LOG_UINT8, active, &lActive)
 /** @brief Time of one kernel evaluation, us (usecTimestamp) */
 LOG_ADD(LOG_UINT32, evalUs, &lEvalUs)
-/** @brief POLYCC_STATUS_* (polycc_app.h): 0 disabled, 1 ok, 2 no estimate, 3 bad estimate, 4 stale, 5 inside, 6 kernel invalid */
+/** @brief 0 disabled, 1 ok (engaged), 2 no estimate, 3 bad estimate, 4 stale estimate, 5 inside an obstacle,
+ * 6 kernel invalid (2-6 hold position), 7 not flying (take off first), 8 waiting for the high-level commander,
+ * 9 controller is not PID, 10 link lost (landing), 11 supervisor locked/crashed/tumbled, 12 scene too slow */
 LOG_ADD(LOG_UINT8, status, &lStatus)
+/** @brief Loop rate in use, Hz (rateHz, lowered until the scene's certified worst case fits half a tick) */
+LOG_ADD(LOG_UINT16, rate, &lRate)
 LOG_GROUP_STOP(polycc)

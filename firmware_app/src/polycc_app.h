@@ -7,6 +7,18 @@
  * calls polycc_app_init() / polycc_app_tick() itself, one tick at a time.
  *
  * No firmware headers here: this file is shared with the host build.
+ *
+ * States (log polycc.status; polycc/onboard/app.py has the same names):
+ *   While polycc.enable = 0 the app sends nothing.  When it is set, the app takes control only
+ *   if the vehicle is flying (supervisor), the high-level commander has finished its takeoff
+ *   or go_to, the PID controller is selected and the link is up; until then the status says
+ *   what it waits for and nothing is sent (so enabling on the floor never spins the motors).
+ *   While it has control ("engaged") it streams setpoints every tick at priority EXTRX: ground
+ *   setpoints are ignored until disable.  A bad or stale estimate, psi < 0 or a kernel refusal
+ *   holds the position where the fallback began.  Disabling, or a controller change, hands
+ *   the vehicle to the high-level commander holding position (go_to to the stopping point,
+ *   then commanderRelaxPriority), so a later go_to or land works; losing the link hands it to
+ *   a high-level landing.  No path sends a stop (motors-off) setpoint.
  */
 #ifndef POLYCC_APP_H
 #define POLYCC_APP_H
@@ -16,13 +28,21 @@
 #include "polycc_kernel.h"
 
 /* Log variable polycc.status (uint8). */
-#define POLYCC_STATUS_DISABLED 0u       /* enable == 0: no setpoints sent, priority relaxed */
-#define POLYCC_STATUS_OK 1u             /* flying: filtered velocity setpoint sent */
-#define POLYCC_STATUS_NO_ESTIMATE 2u    /* stateEstimate.x/y/z not found in the log TOC: zero velocity */
-#define POLYCC_STATUS_BAD_ESTIMATE 3u   /* estimate NaN/Inf/out of range or its variance too large: zero velocity */
-#define POLYCC_STATUS_STALE_ESTIMATE 4u /* estimate bit-identical for POLYCC_APP_STALE_MS: zero velocity */
-#define POLYCC_STATUS_INSIDE 5u         /* psi < 0 (inside an inflated obstacle): zero velocity */
-#define POLYCC_STATUS_KERNEL_INVALID 6u /* kernel refused params/goal/state (POLYCC_FLAG_INVALID): zero velocity */
+#define POLYCC_STATUS_DISABLED 0u       /* enable == 0: nothing sent (after a hand-over: the HL commander holds) */
+#define POLYCC_STATUS_OK 1u             /* engaged: filtered velocity setpoint sent */
+#define POLYCC_STATUS_NO_ESTIMATE 2u    /* stateEstimate.x/y/z not in the log TOC: holding position */
+#define POLYCC_STATUS_BAD_ESTIMATE 3u   /* estimate NaN/Inf/out of range or its variance too large: holding */
+#define POLYCC_STATUS_STALE_ESTIMATE 4u /* estimate bit-identical for POLYCC_APP_STALE_MS: holding */
+#define POLYCC_STATUS_INSIDE 5u         /* psi < 0 (inside an inflated obstacle): holding position */
+#define POLYCC_STATUS_KERNEL_INVALID 6u /* kernel refused params/goal/state (POLYCC_FLAG_INVALID): holding */
+#define POLYCC_STATUS_NOT_FLYING 7u     /* enabled on the ground: nothing sent; take off first (high-level takeoff) */
+#define POLYCC_STATUS_WAIT_HL 8u        /* enabled, waiting for the high-level commander's takeoff/go_to to finish */
+#define POLYCC_STATUS_BAD_CONTROLLER 9u /* stabilizer.controller is not PID (1): enable refused, nothing sent */
+#define POLYCC_STATUS_LINK_LOST 10u     /* no packet from the ground for POLYCC_APP_LINK_TIMEOUT_MS: handed over to
+                                           a high-level landing, enable cleared */
+#define POLYCC_STATUS_SUPERVISOR 11u    /* supervisor locked, crashed or tumbled: nothing sent */
+#define POLYCC_STATUS_TOO_SLOW 12u      /* the scene's worst case does not fit even POLYCC_APP_MIN_RATE_HZ: refused */
+#define POLYCC_APP_STATUS_COUNT 13u
 
 /* Defaults of the polycc parameter group. */
 #define POLYCC_APP_DEFAULT_RATE_HZ 500u
@@ -35,6 +55,11 @@
 /* rateHz below this is raised to it, so that setpoints arrive at least every 100 ms and the
  * commander's 500 ms watchdog never fires while enabled. */
 #define POLYCC_APP_MIN_RATE_HZ 10u
+/* The kernel's certified worst case (POLYCC_SCENE_WORST_CYCLES of polytopes.h) may use at most
+ * this share of a tick: the rate is lowered at init (and when rateHz is written) until it fits,
+ * so a tick never overruns its period and the idle task (hardware watchdog) always runs. */
+#define POLYCC_APP_CPU_SHARE_PERCENT 50u
+#define POLYCC_APP_CPU_HZ 168000000u /* STM32F405 */
 
 /* The estimate counts as stale when x, y and z keep exactly the same bits this long. */
 #define POLYCC_APP_STALE_MS 250u
@@ -43,6 +68,17 @@
 #define POLYCC_APP_POS_VAR_MAX 0.01f
 /* |stateEstimate component| above this (m) is refused. */
 #define POLYCC_APP_POS_LIMIT 1000.0f
+
+/* Link loss: crtpIsConnected() false (the radio link: no packet for 1 s), or, once the ground
+ * has sent app-channel heartbeats (polycc fly sends them every 100 ms), none for this long. */
+#define POLYCC_APP_LINK_TIMEOUT_MS 1000u
+/* Hand-over to the high-level commander: go_to the point where a deceleration of
+ * POLYCC_APP_HANDOVER_ACC stops the vehicle (at most half the clearance psi ahead), in at least
+ * POLYCC_APP_HANDOVER_MIN_S.  Landing after link loss descends at POLYCC_APP_LAND_SPEED. */
+#define POLYCC_APP_HANDOVER_ACC 2.0f   /* m/s^2 */
+#define POLYCC_APP_HANDOVER_MIN_S 0.5f /* s */
+#define POLYCC_APP_LAND_SPEED 0.3f     /* m/s */
+#define POLYCC_APP_LAND_MIN_S 2.0f     /* s */
 
 /* Braking term (closes the realization gap of a lagging vehicle, bench/bench_sim.py): the
  * kernel's speed limit is min(vmax, s(psi)), s(psi) the largest speed from which the vehicle
@@ -60,6 +96,11 @@
 #endif
 #define POLYCC_APP_BRAKE_VMIN 0.05f /* m/s */
 
+/* App-channel reply to every packet from the ground (little-endian, 18 bytes, then up to 12
+ * bytes of the request as an echo): status (uint8), enable (uint8), psi (float, m), x, y, z
+ * (float, m, the estimate). */
+#define POLYCC_APP_REPLY_BYTES 18u
+
 /* Resets the app's state and parameters to their defaults and looks up the log variables. */
 void polycc_app_init(void);
 /* One iteration of the control loop; returns the delay (FreeRTOS ticks, >= 1) until the next. */
@@ -71,6 +112,9 @@ typedef struct polycc_app_trace {
     float x[3], goal[3];     /* state and goal given to polycc_step */
     polycc_params_t params;  /* params given to polycc_step (v_max includes the braking term) */
     polycc_out_t out;        /* its output */
+    uint32_t handovers;      /* hand-overs to the high-level commander (hold) */
+    uint32_t landings;       /* hand-overs to a high-level landing (link loss) */
+    float handover[4];       /* the last hand-over's go_to target x, y, z (m) and duration (s) */
 } polycc_app_trace_t;
 const polycc_app_trace_t *polycc_app_trace(void);
 

@@ -24,9 +24,14 @@ def register(subparsers) -> None:
             "runs it in real time on a simulated vehicle and serves it as a Crazyflie that Bitcraze's cflib "
             "connects to: param and log TOCs from the app's own PARAM_/LOG_ tables (plus stateEstimate.* and "
             "firmware.polyccVersion), params that write the app's variables, log blocks at the requested period, "
-            "an app channel that answers with the app's status, and commander/high-level setpoints (takeoff "
-            "flies to the requested height) while polycc.enable is 0. Prints the URI to use and runs until Ctrl-C. "
-            "Drive it with your own cflib script or `polycc fly --uri URI --goal X,Y,Z`."
+            "and the standard groups cflib and cfclient use (kalman, stabilizer.controller, commander, supervisor, "
+            "pm, deck), params that write the app's variables, log blocks at the requested period, and a host "
+            "model of the firmware's flight control: the commander's priorities, the high-level commander "
+            "(takeoff/go_to/land trajectories), the supervisor's watchdog and motors-off cases, as on a Crazyflie "
+            "(a stop setpoint in the air drops it). The vehicle starts on the floor with the motors off below "
+            "--start (or hovering there with --airborne). Prints the URI to use and runs until Ctrl-C. Drive it "
+            "with your own cflib script or `polycc fly --uri URI --takeoff 0.9 --goal X,Y,Z --land`. "
+            "`--firmware FWDIR` serves the real Crazyflie firmware (its SITL) instead."
         ),
     )
     p.add_argument("out", metavar="OUT", help="build folder with polytopes.h (from `polycc build`)")
@@ -41,8 +46,13 @@ def register(subparsers) -> None:
                         "default --start and the goal suggested for `polycc fly` (default: the scene in "
                         "OUT/manifest.json)")
     add_point_option(p, "--start",
-                   help="initial position, m; the vehicle starts hovering there (default: the scene sidecar's "
-                        "'start', else 0,0,0)")
+                   help="initial position, m; the vehicle rests on the floor (--floor-z) below it, or hovers there "
+                        "with --airborne (default: the scene sidecar's 'start', else 0,0,0)")
+    p.add_argument("--airborne", action="store_true",
+                   help="start hovering at --start under the high-level commander, as after a takeoff "
+                        "(default: on the floor, motors off)")
+    p.add_argument("--floor-z", type=number(float, -1000.0, 1000.0, unit="m"), default=0.0, metavar="Z",
+                   help="height of the floor the vehicle stands and lands on, m (default: %(default)s)")
     p.add_argument("--dynamics", choices=("crazyflie", "integrator", "quadrotor"), default="crazyflie",
                    help="vehicle model: Crazyflie 2.1-like velocity tracking, the single integrator, or the full "
                         "rigid-body quadrotor (see `polycc sim --help`) (default: %(default)s)")
@@ -51,9 +61,6 @@ def register(subparsers) -> None:
     p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=None, metavar="HZ",
                    help="initial app loop rate (param polycc.rateHz, 10..1000 Hz; a client may change it) "
                         "(default: the app's, 500)")
-    p.add_argument("--takeoff-speed", type=number(float, 0.0, 10.0, lo_open=True, unit="m/s"), default=1.0, metavar="V",
-                   help="speed limit, m/s, when flying a client's takeoff/land/go_to/position target "
-                        "(default: %(default)s)")
     p.add_argument("--estimate-noise", type=number(float, 0.0, 1.0, unit="m"), default=0.001, metavar="M",
                    help="standard deviation of white noise on the position estimate, m; 0 makes a vehicle at rest "
                         "look like a stale estimate to the app (status 4) (default: %(default)s)")
@@ -87,10 +94,12 @@ def run(args) -> int:
         start = (0.0, 0.0, 0.0)
 
     with console.status("building the app for this machine"):
+        if not args.airborne:
+            start = (float(start[0]), float(start[1]), args.floor_z)
         model = SitlDeviceModel(header, start=start, dynamics=args.dynamics,
                                 delay_s=None if args.delay_ms is None else args.delay_ms * 1e-3,
-                                rate_hz=args.rate_hz, ext_speed=args.takeoff_speed,
-                                estimate_noise_m=args.estimate_noise)
+                                rate_hz=args.rate_hz, estimate_noise_m=args.estimate_noise,
+                                on_floor=not args.airborne, floor_z=args.floor_z)
     servers = []
     try:
         if udp is not None:  # one CrtpDevice per transport: each client has its own log blocks
@@ -101,7 +110,8 @@ def run(args) -> int:
         for s in servers:
             s.start()
         x, y, z = (float(v) for v in start)
-        console.print(f"simulated Crazyflie: {out}/polytopes.h, {args.dynamics} dynamics, start {x:g},{y:g},{z:g} m",
+        where = "hovering at" if args.airborne else "on the floor at"
+        console.print(f"simulated Crazyflie: {out}/polytopes.h, {args.dynamics} dynamics, {where} {x:g},{y:g},{z:g} m",
                       soft_wrap=True)
         for s in servers:
             if isinstance(s, UdpDeviceServer):
@@ -115,7 +125,9 @@ def run(args) -> int:
         uri = next((s.uri for s in servers if isinstance(s, UdpDeviceServer)), None) or \
             next((s.uri for s in servers if s.link_path is not None), "URI")
         g = ",".join(f"{v:g}" for v in goal) if goal is not None else "X,Y,Z"
-        console.print(f"try: polycc fly --uri {uri} --goal {g}    (Ctrl-C stops the device)", soft_wrap=True)
+        takeoff = "" if args.airborne else "--takeoff 0.9 "
+        console.print(f"try: polycc fly --uri {uri} {takeoff}--goal {g} --land    (Ctrl-C stops the device)",
+                      soft_wrap=True)
         sys.stdout.flush()  # the URI must reach a pipe at once (scripts wait for it)
         t_end = None if args.duration is None else time.monotonic() + args.duration
         last = 0.0

@@ -13,6 +13,7 @@ from pathlib import Path
 import jinja2
 import numpy as np
 
+from polycc.budget.cycle_model import worst_cycles
 from polycc.onboard.layout import SCENE_FORMAT, PackedScene, pack_scene
 from polycc.version import __version__
 
@@ -72,6 +73,8 @@ def render_header(packed: PackedScene, meta: dict) -> str:
         floater_line=meta.get("floater_line", "none"),
         kappa=f"{meta['kappa']:g}",
         kappa_literal=c_float(meta["kappa"]),
+        worst_cycles=int(meta.get("worst_cycles", np.ceil(worst_cycles(packed)))),
+        typical_cycles=int(meta.get("typical_cycles", 0)),
         n_clusters=packed.n_clusters,
         n_polys=packed.n_polys,
         n_planes=packed.n_planes,

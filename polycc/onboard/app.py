@@ -6,7 +6,31 @@ the two agree), and the ``polycc`` parameter and log groups.
 
 from __future__ import annotations
 
-STATUS_NAMES = {0: "disabled", 1: "ok", 2: "no estimate", 3: "bad estimate", 4: "stale estimate", 5: "inside",
-                6: "kernel invalid"}
+STATUS_NAMES = {
+    0: "disabled", 1: "ok", 2: "no estimate", 3: "bad estimate", 4: "stale estimate", 5: "inside",
+    6: "kernel invalid", 7: "not flying", 8: "waiting for the high-level commander", 9: "controller is not PID",
+    10: "link lost", 11: "supervisor locked or crashed", 12: "scene too slow",
+}
+# What each status means for the user, in words (`polycc fly` prints these).
+STATUS_TEXT = {
+    0: "disabled: the app sends nothing (after a hand-over the high-level commander holds the position)",
+    1: "flying through the safety filter",
+    2: "no stateEstimate in the log TOC: holding position",
+    3: "the position estimate is invalid or too uncertain: holding position",
+    4: "the position estimate is not updating: holding position",
+    5: "inside an obstacle's safety margin (psi < 0): holding position",
+    6: "the kernel refused the parameters, goal or state: holding position",
+    7: "on the ground or motors off: take off first (high-level takeoff), nothing is sent",
+    8: "waiting for the high-level commander's takeoff or go_to to finish",
+    9: "stabilizer.controller is not PID (set it to 1): enable refused",
+    10: "link lost: handed over to a high-level landing, enable cleared",
+    11: "the supervisor has locked the vehicle or detected a crash/tumble: nothing is sent",
+    12: "the scene's worst-case evaluation does not fit even 10 Hz: rebuild with --rate-hz",
+}
+FLYING = {1, 2, 3, 4, 5, 6}  # statuses in which the app streams setpoints (owns the vehicle)
+STOP_REASONS = {5, 6, 9, 10, 11, 12}  # statuses that end a `polycc fly` run with an error
+REPLY_FORMAT = "<BBffff"
+"""App-channel reply head (POLYCC_APP_REPLY_BYTES): status, enable, psi (m), estimate x, y, z (m); then an
+echo of the first bytes of the request."""
 PARAM_GROUP = "polycc"
 LOG_GROUP = "polycc"

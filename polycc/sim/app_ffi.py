@@ -56,7 +56,8 @@ HOST_CFLAGS = ["-O2", *FIRMWARE_WARN_FLAGS, "-Wextra", "-DPOLYCC_SHIM_HOST=1"]
 # The shims' C API, the kernel's and the app's types and constants, all from their headers; then
 # the constants of the generated header and the host-only glue below.
 CDEF = headers_cdef(SHIMS / "polycc_shim.h", SRC / "polycc_scene_layout.h", SRC / "polycc_kernel.h",
-                    SRC / "polycc_app.h") + """
+                    SRC / "polycc_app.h") + "typedef struct state_s state_t;\n" + headers_cdef(
+    SHIMS / "crtp_commander_high_level.h", SHIMS / "supervisor.h", SHIMS / "controller.h", SHIMS / "crtp.h") + """
 float polycc_host_brake_acc(void);
 #define POLYCC_SCENE_N_POLYS ...
 #define POLYCC_SCENE_N_PLANES ...
@@ -69,6 +70,10 @@ float polycc_host_scene_const(int which);
 # Host-only glue: the scene constants of the header the app was built with.
 GLUE = """
 #include "polycc_shim.h"
+#include "controller.h"
+#include "crtp.h"
+#include "crtp_commander_high_level.h"
+#include "supervisor.h"
 #include "polycc_app.h"
 #include "polycc_scene_layout.h"
 #include "polytopes.h"
@@ -167,6 +172,10 @@ class CommanderRecord:
     velocity: tuple[float, float, float]  # m/s, float32 values
     velocity_bits: tuple[int, int, int]  # uint32 patterns of the float32 velocity
     yaw_rate: float
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m (position setpoints)
+    hl_state: int = 0  # high-level planner: 0 idle (stopped), 1 flying, 2 landing
+    hl_gotos: int = 0  # crtpCommanderHighLevelGoTo calls
+    hl_lands: int = 0
 
 
 class AppSim:
@@ -279,7 +288,15 @@ class AppSim:
                                int(r.active_priority),
                                (r.mode_x, r.mode_y, r.mode_z, r.mode_roll, r.mode_pitch, r.mode_yaw),
                                bool(r.velocity_body), tuple(float(a) for a in v),
-                               tuple(int(b) for b in v.view(np.uint32)), float(r.yaw_rate))
+                               tuple(int(b) for b in v.view(np.uint32)), float(r.yaw_rate),
+                               (float(r.px), float(r.py), float(r.pz)), int(r.hl_state), int(r.hl_gotos),
+                               int(r.hl_lands))
+
+    def airborne(self, x=(0.0, 0.0, 1.0)) -> None:
+        """As after a finished high-level takeoff: hovering at ``x`` under the high-level commander,
+        so the app may take control (the supervisor reports flying)."""
+        self.lib.shim_hl_hover_at(float(x[0]), float(x[1]), float(x[2]))
+        self.lib.shim_set_attitude(0.0, 0.0, 0.0, 36000.0)
 
     def trace(self):
         """The app's last kernel call (``polycc_app_trace_t``: calls, x, goal, params, out)."""

@@ -380,6 +380,13 @@ class CrtpDevice:
         behind skips ahead instead (counted in ``stats.log_overruns``).
         """
         out: list[CrtpPacket] = []
+        pending = getattr(self.model, "outgoing_appchannel", None)
+        if pending is not None:
+            with self.model.lock:
+                for data in pending():
+                    out.append(CrtpPacket(Port.PLATFORM, PlatformChannel.APP, bytes(data)[:MAX_PAYLOAD]))
+            self.stats.appchannel_tx += len(out)
+            self.stats.tx += len(out)
         if not any(b.running for b in self._blocks.values()):
             return out
         try:

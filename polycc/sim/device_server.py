@@ -145,12 +145,15 @@ class UdpDeviceServer(_ServerThread):
             except FramingError:
                 self.bad_datagrams += 1
                 continue
+            if getattr(self.device.model, "link_cut", False):
+                continue  # simulated link loss: nothing gets through
             if pk.port == Port.LINK and pk.channel == LinkChannel.NULL:
                 self._send(CrtpPacket(Port.LINK, LinkChannel.NULL))  # answer cflib's scan probe
             for r in self.device.handle(pk):
                 self._send(r)
         for pk in self.device.tick():
-            self._send(pk)
+            if not getattr(self.device.model, "link_cut", False):
+                self._send(pk)
 
     def _close(self) -> None:
         self.sock.close()

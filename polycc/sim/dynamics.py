@@ -364,3 +364,113 @@ def make_dynamics(name: str, delay_s: float | None = None):
     if name == "quadrotor":
         return Quadrotor(QuadrotorParams() if delay_s is None else QuadrotorParams(delay_s=delay_s))
     raise ValueError(f"unknown dynamics {name!r}; choose one of {', '.join(DYNAMICS)}")
+
+
+@dataclass(frozen=True)
+class PositionLoop:
+    """The stock PID controller's position loop, which turns position setpoints into velocity
+    setpoints (crazyflie-firmware position_controller_pid.c, platform defaults: posCtlPid xKp = yKp
+    = zKp = 2 1/s, no integral or derivative term; xVelMax = yVelMax = 1 m/s, zVelMax = 1 m/s)."""
+
+    kp_xy: float = 2.0
+    kp_z: float = 2.0
+    vmax_xy: float = 1.0
+    vmax_z: float = 1.0
+    hover_thrust: float = 36000.0  # stabilizer.thrust the app sees while the motors run
+
+
+def velocity_command(sp, p: np.ndarray, v: np.ndarray, loop: PositionLoop = PositionLoop()) -> np.ndarray:
+    """World-frame velocity the firmware's PID cascade aims for under setpoint ``sp`` (a
+    ``shim_setpoint_t``: modes 0 disable, 1 absolute, 2 velocity)."""
+    yaw = math.radians(float(sp.yaw)) if sp.mode_yaw == 1 else 0.0
+    sv = np.array([sp.vx, sp.vy, sp.vz], np.float64)
+    if sp.velocity_body:  # hover setpoints: body-frame x/y (the models keep yaw 0)
+        c, s = math.cos(yaw), math.sin(yaw)
+        sv[:2] = [c * sv[0] - s * sv[1], s * sv[0] + c * sv[1]]
+    spp = np.array([sp.px, sp.py, sp.pz], np.float64)
+    u = v.copy()  # mode disable: no horizontal command (level attitude keeps the velocity)
+    for i, mode in enumerate((sp.mode_x, sp.mode_y, sp.mode_z)):
+        kp, vmax = (loop.kp_z, loop.vmax_z) if i == 2 else (loop.kp_xy, loop.vmax_xy)
+        if mode == 1:
+            u[i] = min(max(sv[i] + kp * (spp[i] - p[i]), -vmax), vmax)
+        elif mode == 2:
+            u[i] = sv[i]
+    return u
+
+
+class Vehicle:
+    """A vehicle model flown by the setpoint the firmware's controller gets (``shim_setpoint_t``
+    from :func:`shim_stabilizer_step` or the real firmware's log), with the motors-off case and a
+    floor at ``floor_z`` (m): with the null setpoint the motors stop and the vehicle falls; on the
+    floor it rests (``impact_speed_ms`` records the fastest touchdown, m/s)."""
+
+    def __init__(self, model, floor_z: float = 0.0, loop: PositionLoop = PositionLoop()):
+        self.model = model
+        self.floor_z = float(floor_z)
+        self.loop = loop
+        delay = getattr(getattr(model, "prm", None), "delay_s", None)
+        if delay is None:
+            delay = model._delay.delay
+        self._delay = _Delayed(delay)
+        self.motors_on = False
+        self.impact_speed_ms = 0.0
+        self.t = 0.0
+
+    @property
+    def p(self) -> np.ndarray:
+        return self.model.p
+
+    @property
+    def v(self) -> np.ndarray:
+        return self.model.v
+
+    @property
+    def name(self) -> str:
+        return self.model.name
+
+    def reset(self, p0, motors_on: bool = True) -> None:
+        self.model.reset(p0)
+        self.t = 0.0
+        self.motors_on = motors_on
+        self.impact_speed_ms = 0.0
+        self._delay.reset(0.0, self.model.p, self.model.v)
+
+    @property
+    def on_floor(self) -> bool:
+        return self.model.p[2] <= self.floor_z + 1e-9 and abs(self.model.v[2]) < 1e-9
+
+    def thrust(self) -> float:
+        return self.loop.hover_thrust if self.motors_on else 0.0
+
+    def _floor(self) -> None:
+        m = self.model
+        if m.p[2] < self.floor_z:
+            self.impact_speed_ms = max(self.impact_speed_ms, -float(m.v[2]))
+            m.p[2] = self.floor_z
+            m.v = np.zeros(3) if not self.motors_on else np.array([m.v[0], m.v[1], max(0.0, m.v[2])])
+
+    def step(self, sp, dt: float) -> None:
+        m = self.model
+        if not sp.motors_on:
+            if self.motors_on:
+                self.motors_on = False
+            if not self.on_floor:  # free fall
+                m.v = m.v + dt * np.array([0.0, 0.0, -G])
+                m.p = m.p + dt * m.v
+            m.t += dt
+            self._floor()
+        else:
+            if not self.motors_on:  # spin up from rest (on the floor, or after a cut in the air)
+                v0 = m.v.copy()
+                m.reset(m.p.copy())
+                m.v = v0 if not self.on_floor else np.zeros(3)
+                self.motors_on = True
+            u = velocity_command(sp, m.p, m.v, self.loop)
+            m.step(u, dt)
+            self._floor()
+        self.t += dt
+        self._delay.push(self.t, m.p, m.v)
+
+    def estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(position, velocity) as the estimator reports them (the model's delay)."""
+        return self._delay.get(self.t, self.model.p, self.model.v)

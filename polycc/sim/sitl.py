@@ -29,9 +29,10 @@ from polycc.onboard.barrier import barrier as ref_barrier
 from polycc.onboard.layout import PackedScene
 from polycc.sim.app_ffi import AppSim
 from polycc.sim.clearance import Clearance, densify
-from polycc.sim.dynamics import make_dynamics
+from polycc.sim.dynamics import Vehicle, make_dynamics
 
 GOAL_TOLERANCE_M = 0.05
+CRTP_PRIORITY = 2  # COMMANDER_PRIORITY_CRTP: a ground client's setpoints
 
 
 # --------------------------------------------------------------------------- flights
@@ -50,6 +51,7 @@ class FlightConfig:
     stuck_window_s: float = 2.0  # stop when the vehicle moved less than stuck_dist_m in this window
     stuck_dist_m: float = 0.01
     record_app_io: bool = False  # keep what the app saw and sent, tick by tick
+    floor_z: float = -1e3  # m: the floor the vehicle rests on (default: far below the scene)
 
     def params(self, kappa: float) -> Params:
         return Params(kappa=kappa, radius=self.radius, beta=self.beta, c_clf=self.clf_gain, v_max=self.vmax)
@@ -70,6 +72,7 @@ class Trial:
     min_clearance_m: float = math.nan  # ground-truth ellipsoids, agent radius subtracted
     collisions: int = -1
     io: dict | None = None  # record_app_io: per tick what the app saw, sent and gave/got from the kernel
+    impact_speed_ms: float = 0.0  # fastest touchdown on the floor, m/s (0: none)
 
     @property
     def length_ratio(self) -> float:
@@ -89,13 +92,22 @@ class Simulator:
 
     def fly(self, start, goal, dynamics: str = "integrator", cfg: FlightConfig | None = None,
             delay_s: float | None = None) -> Trial:
+        """One flight from ``start`` (the vehicle hovering there under the high-level commander,
+        as after a takeoff) with the app enabled towards ``goal``; every 1 ms tick runs the host
+        model of the firmware's commander, high-level commander and supervisor
+        (``shim_stabilizer_step``) and flies the setpoint the controller gets."""
         cfg = cfg or FlightConfig()
-        app, lib = self.app, self.app.lib
+        app, lib, ffi = self.app, self.app.lib, self.app.ffi
         start = np.asarray(start, np.float64)
         goal = np.asarray(goal, np.float64)
-        dyn = make_dynamics(dynamics, delay_s)
-        dyn.reset(start)
+        veh = Vehicle(make_dynamics(dynamics, delay_s), floor_z=cfg.floor_z)
+        veh.reset(start)
         app.reset()
+        sp = ffi.new("shim_setpoint_t *")
+        lib.shim_set_tick(0)
+        lib.shim_hl_hover_at(*(float(v) for v in start))  # hovering under the HL commander, as after a takeoff
+        pos32 = ffi.new("float[3]")
+        vel32 = ffi.new("float[3]")
         for name, val in (("goalX", goal[0]), ("goalY", goal[1]), ("goalZ", goal[2]), ("vmax", cfg.vmax),
                           ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),
                           ("rateHz", cfg.rate_hz), ("enable", 1)):
@@ -108,8 +120,7 @@ class Simulator:
         params = cfg.params(self.kappa)
         worst_us = int(cycle_model.us(cycle_model.worst_cycles(self.packed)))
         seen = []
-        rec = app.ffi.new("shim_commander_record_t *")
-        tick = 0
+        rec = ffi.new("shim_commander_record_t *")
         positions = [start.copy()]
         times = [0.0]
         statuses: dict[int, int] = {}
@@ -117,36 +128,44 @@ class Simulator:
                                 "out_flags")} if cfg.record_app_io else None)
         outcome = "timeout"
         stuck_ticks = None
+        tick, next_app, period = 1, 1, 1
         while True:
-            pe, ve = dyn.estimate()
-            est = pe.astype(np.float32)
-            lib.shim_set_estimate(float(est[0]), float(est[1]), float(est[2]), float(ve[0]), float(ve[1]), float(ve[2]))
             lib.shim_set_tick(tick)
-            lib.shim_set_usec(tick * 1000, worst_us)
-            seen.append(est)
-            period = int(lib.polycc_app_tick())
-            lib.shim_commander_get(rec)
-            u = (rec.vx, rec.vy, rec.vz)
-            st = int(lib.shim_log_value(i_status))
-            statuses[st] = statuses.get(st, 0) + 1
-            if io is not None:
-                tr = lib.polycc_app_trace()
-                io["x_seen"].append(est)
-                io["u"].append(u)
-                io["psi"].append(lib.shim_log_value(i_psi))
-                io["status"].append(st)
-                io["calls"].append(tr.calls)
-                io["x_kernel"].append(tuple(tr.x))
-                io["vmax"].append(tr.params.v_max)
-                io["out_u"].append(tuple(tr.out.u))
-                io["out_psi"].append(tr.out.psi)
-                io["out_flags"].append(tr.out.flags)
-            dyn.step(u, period * 1e-3)
-            tick += period
+            if tick >= next_app:
+                pe, ve = veh.estimate()
+                est = pe.astype(np.float32)
+                lib.shim_set_estimate(float(est[0]), float(est[1]), float(est[2]), float(ve[0]), float(ve[1]),
+                                      float(ve[2]))
+                lib.shim_set_attitude(0.0, 0.0, 0.0, veh.thrust())
+                lib.shim_set_usec(tick * 1000, worst_us)
+                seen.append(est)
+                period = int(lib.polycc_app_tick())
+                next_app = tick + period
+                lib.shim_commander_get(rec)
+                st = int(lib.shim_log_value(i_status))
+                statuses[st] = statuses.get(st, 0) + 1
+                if io is not None:
+                    tr = lib.polycc_app_trace()
+                    io["x_seen"].append(est)
+                    io["u"].append((rec.vx, rec.vy, rec.vz))
+                    io["psi"].append(lib.shim_log_value(i_psi))
+                    io["status"].append(st)
+                    io["calls"].append(tr.calls)
+                    io["x_kernel"].append(tuple(tr.x))
+                    io["vmax"].append(tr.params.v_max)
+                    io["out_u"].append(tuple(tr.out.u))
+                    io["out_psi"].append(tr.out.psi)
+                    io["out_flags"].append(tr.out.flags)
+            pos32[0:3] = veh.p.tolist()
+            vel32[0:3] = veh.v.tolist()
+            lib.shim_stabilizer_step(pos32, vel32, 0.0, sp)
+            veh.step(sp, 1e-3)
             t = tick * 1e-3
-            positions.append(dyn.p.copy())
-            times.append(t)
-            if np.linalg.norm(dyn.p - goal) <= cfg.goal_tol_m:
+            if tick >= next_app - 1:  # sample the path once per app period
+                positions.append(veh.p.copy())
+                times.append(t)
+            tick += 1
+            if np.linalg.norm(veh.p - goal) <= cfg.goal_tol_m:
                 outcome = "goal"
                 break
             if t >= t_max:
@@ -161,6 +180,7 @@ class Simulator:
         max_eval = int(cycle_model.us(cycle_model.state_cycles(self.packed, params, np.asarray(seen))).max())
         trial = Trial(start, goal, outcome == "goal", outcome, times[-1],
                       float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))), straight, P, max_eval, statuses)
+        trial.impact_speed_ms = veh.impact_speed_ms
         if io is not None:
             f3 = lambda k: np.asarray(io[k], np.float32).reshape(-1, 3)  # noqa: E731
             trial.io = {"x_seen": f3("x_seen"), "u": f3("u"),

@@ -10,15 +10,17 @@
 * **Real time**: :meth:`SitlDeviceModel.start` runs a thread that, holding ``model.lock``, steps
   the app on its simulated 1 kHz FreeRTOS clock and the vehicle model (Crazyflie-like by
   default) up to the wall clock; the log timestamps use the same clock.
-* **Setpoints** from a client (cflib's commander, generic setpoints, high-level commander) fly the
-  vehicle while ``polycc.enable`` is 0: a position, hover height, ``takeoff``/``land`` height or
-  ``go_to`` target is approached at up to :attr:`SitlDeviceModel.ext_speed` m/s (so "takeoff" is
-  reaching the requested height), velocities are flown as given; low-level setpoints older than
-  0.5 s (the firmware's commander watchdog) and ``stop`` leave the vehicle hovering in place
-  (a simulation does not need to crash). While the app is enabled its velocity setpoint wins,
-  as on the Crazyflie where the app's commander priority is above an idle client's.
-* **App channel**: every packet is answered with :data:`APP_STATUS_FORMAT` (app status code,
-  enable, psi, position) followed by the first bytes of the request (an echo for matching).
+* **Flight control** follows the firmware: every client setpoint (cflib's commander, generic and
+  high-level packets) goes into the host model of the commander, high-level commander and
+  supervisor (``polycc/sim/shims/sim_commander.c``) at CRTP priority, as the app's go in at its own;
+  each 1 ms tick the setpoint the controller would get is flown by the vehicle model
+  (:class:`~polycc.sim.dynamics.Vehicle`). So, as on a Crazyflie, a stop setpoint or a stopped
+  high-level planner after a relax cuts the motors and the vehicle falls; a setpoint older than
+  0.5 s levels it and older than 2 s cuts the motors; HL takeoff/go_to/land fly 7th-order
+  trajectories; ``stabilizer.controller`` selects the controller the app checks.
+* **App channel**: packets go to the app (its heartbeat watchdog), which answers each with its
+  status (``polycc.onboard.app.REPLY_FORMAT``) from its next tick.
+* :meth:`SitlDeviceModel.cut_link` simulates link loss (``crtpIsConnected`` false, packets dropped).
 """
 
 from __future__ import annotations
@@ -33,16 +35,15 @@ import numpy as np
 from polycc.errors import PolyccError
 from polycc.sim.app_ffi import AppSim
 from polycc.sim.crtp_device import DeviceModel, LogEntry, ParamEntry, ctype_from_log_type, ctype_from_param_type
-from polycc.sim.dynamics import make_dynamics
+from polycc.sim.dynamics import Vehicle, make_dynamics, velocity_command
 
+CRTP_PRIORITY = 2  # COMMANDER_PRIORITY_CRTP
 APP_STATUS_FORMAT = "<BBffff"
 """App-channel reply head: polycc.status (uint8), polycc.enable (uint8), polycc.psi (m),
 stateEstimate x, y, z (m); 18 bytes, followed by up to 12 bytes of the request."""
 APP_STATUS_SIZE = struct.calcsize(APP_STATUS_FORMAT)
-SETPOINT_TIMEOUT_MS = 500
-"""Low-level setpoints older than this stop being flown (the firmware's commander watchdog)."""
-EXT_GAIN = 2.0
-"""1/s: proportional gain of the position-target model (takeoff, go_to, position, hover height)."""
+RADIO_TIMEOUT_MS = 1000
+"""crtpIsConnected() on the radio turns false this long after the last packet (CONFIG_RADIO_ACTIVITY_TIMEOUT_MS)."""
 MAX_CATCH_UP_MS = 1000
 """If the simulation falls this far behind the wall clock it skips ahead (counted in ``skips``)."""
 
@@ -59,11 +60,11 @@ class SitlDeviceModel(DeviceModel):
 
     Args:
         header: the scene header from ``polycc build``.
-        start: initial position, m (the vehicle starts hovering there, velocity 0).
+        start: initial position, m (on the floor if ``on_floor``, else hovering there under the
+            high-level commander, as after a takeoff).
         dynamics: ``"crazyflie"`` (default), ``"integrator"`` or ``"quadrotor"`` (see :mod:`polycc.sim.dynamics`).
         delay_s: estimator delay, s (default: the model's own).
         rate_hz: initial ``polycc.rateHz`` (default: the app's).
-        ext_speed: speed limit, m/s, when flying a client's position/takeoff/go_to target.
         estimate_noise_m: standard deviation, m, of white noise on the position estimate the app
             and the logs see (a real estimator never repeats itself bit for bit; with 0 a vehicle
             at rest makes the app report a stale estimate, status 4).
@@ -74,8 +75,9 @@ class SitlDeviceModel(DeviceModel):
     """
 
     def __init__(self, header: str | Path, start=(0.0, 0.0, 0.0), dynamics: str = "crazyflie",
-                 delay_s: float | None = None, rate_hz: int | None = None, ext_speed: float = 1.0,
-                 estimate_noise_m: float = 0.001, seed: int = 0) -> None:
+                 delay_s: float | None = None, rate_hz: int | None = None,
+                 estimate_noise_m: float = 0.001, seed: int = 0, on_floor: bool = False,
+                 floor_z: float | None = None) -> None:
         self.app = AppSim(header)
         self.app.reset()
         lib = self.app.lib
@@ -94,28 +96,38 @@ class SitlDeviceModel(DeviceModel):
         if self.start_position.shape != (3,) or not np.all(np.isfinite(self.start_position)):
             raise PolyccError(f"start {start!r}: expected three finite numbers x, y, z in metres")
         self.dynamics_name = dynamics
-        self.dyn = make_dynamics(dynamics, delay_s)
-        self.dyn.reset(self.start_position)
-        self.ext_speed = float(ext_speed)
+        self.floor_z = float(self.start_position[2] if on_floor else -1e3) if floor_z is None else float(floor_z)
+        self.dyn = Vehicle(make_dynamics(dynamics, delay_s), floor_z=self.floor_z)
+        self.dyn.reset(self.start_position, motors_on=not on_floor)
         self.estimate_noise_m = float(estimate_noise_m)
         self._rng = np.random.default_rng(seed)
         if rate_hz is not None:
             self.app.set_param("polycc", "rateHz", rate_hz)
-        self._rec = self.app.ffi.new("shim_commander_record_t *")
+        ffi = self.app.ffi
+        self._rec = ffi.new("shim_commander_record_t *")
+        self._sp = ffi.new("shim_setpoint_t *")
+        self._client = ffi.new("shim_setpoint_t *")
+        self._pos = ffi.new("float[3]")
+        self._vel = ffi.new("float[3]")
+        self._app_buf = ffi.new("unsigned char[32]")
+        self._outgoing: list[bytes] = []
+        self._link_cut_until = -1
+        self._cut_start = -1
         self._section_us = self._worst_us()
-        self.sim_ms = 0  # simulated FreeRTOS tick of the next app step
+        self.sim_ms = 0  # simulated FreeRTOS tick of the next stabilizer step
+        self._next_app = 0
         self.steps = 0
         self.skips = 0
         self.step_errors = 0
-        self.u = np.zeros(3)  # velocity setpoint flown in the last step, m/s
-        self._ext: tuple[str, dict, int] | None = None  # (kind, values, time received in ms)
-        self._hold = self.start_position.copy()  # hover target when nothing else applies
+        self.u = np.zeros(3)  # velocity the controller aimed for in the last step, m/s
         self.setpoints: list[str] = []  # kinds received (last 100)
         self.appchannel_rx = 0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         lib.shim_set_tick(0)
+        if not on_floor:  # airborne, hovering under the high-level commander as after a takeoff
+            lib.shim_hl_hover_at(*(float(v) for v in self.start_position))
 
     # ------------------------------------------------------------------ table accessors
     def _param_getter(self, i: int):
@@ -160,81 +172,120 @@ class SitlDeviceModel(DeviceModel):
     def app_enabled(self) -> bool:
         return self.app.lib.shim_param_value(self._i_enable) != 0
 
+    @property
+    def motors_on(self) -> bool:
+        return bool(self.dyn.motors_on)
+
     # ------------------------------------------------------------------ DeviceModel callbacks
+    def _set_client(self, motors: bool, mode=(0, 0, 0), p=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0), a=(0.0, 0.0, 0.0),
+                    yaw_mode: int = 2, yaw: float = 0.0, yaw_rate: float = 0.0, body: bool = False,
+                    rp=None, thrust: float = 0.0) -> None:
+        c = self._client
+        c.motors_on = int(motors)
+        c.mode_x, c.mode_y, c.mode_z = (int(m) for m in mode)
+        c.mode_roll = c.mode_pitch = 1 if rp is not None else 0
+        c.mode_yaw = yaw_mode
+        c.velocity_body = int(body)
+        c.px, c.py, c.pz = (float(x) for x in p)
+        c.vx, c.vy, c.vz = (float(x) for x in v)
+        c.ax, c.ay, c.az = (float(x) for x in a)
+        c.roll, c.pitch = (float(x) for x in (rp or (0.0, 0.0)))
+        c.yaw, c.yaw_rate, c.thrust = float(yaw), float(yaw_rate), float(thrust)
+        self.app.lib.shim_commander_set(c, CRTP_PRIORITY)
+
     def on_setpoint(self, kind: str, values: dict[str, float]) -> None:
+        """A client's commander or high-level packet, into the firmware model (caller holds ``lock``)."""
         self.setpoints = (self.setpoints + [kind])[-100:]
-        now = self.sim_ms
-        p = self.dyn.p
-        if kind in ("hl_takeoff", "hl_land"):
-            self._ext = ("target", {"x": p[0], "y": p[1], "z": float(values["height"])}, -1)
-        elif kind == "hl_go_to":
-            t = np.array([values["x"], values["y"], values["z"]], np.float64)
-            if values.get("relative"):
-                t = t + p
-            self._ext = ("target", dict(zip("xyz", t.tolist())), -1)
-        elif kind in ("hl_stop", "stop", "notify_setpoint_stop", "crash_recovery"):
-            self._hold = p.copy()
-            self._ext = None
+        if self.link_cut:
+            return
+        lib, v = self.app.lib, values
+        if kind == "stop":
+            self._set_client(False)
+        elif kind == "rpyt":
+            if v["thrust"] <= 0:
+                self._set_client(False)
+            else:  # attitude flight is not modelled: hold the altitude, level
+                self._set_client(True, mode=(0, 0, 2), rp=(0.0, 0.0), yaw_rate=v["yawrate"], thrust=v["thrust"])
+        elif kind == "velocity_world":
+            self._set_client(True, mode=(2, 2, 2), v=(v["vx"], v["vy"], v["vz"]), yaw_rate=v["yawrate"])
+        elif kind == "hover":
+            self._set_client(True, mode=(2, 2, 1), v=(v["vx"], v["vy"], 0.0), p=(0.0, 0.0, v["zdistance"]),
+                             yaw_rate=v["yawrate"], body=True)
+        elif kind == "zdistance":
+            self._set_client(True, mode=(0, 0, 1), p=(0.0, 0.0, v["zdistance"]), rp=(v["roll"], v["pitch"]),
+                             yaw_rate=v["yawrate"])
         elif kind == "position":
-            self._ext = ("target", {"x": values["x"], "y": values["y"], "z": values["z"]}, now)
-        elif kind in ("velocity_world", "hover", "zdistance", "full_state"):
-            self._ext = (kind, dict(values), now)
-        # rpyt / manual (attitude and thrust) are not flown by this model: they are accepted only
+            self._set_client(True, mode=(1, 1, 1), p=(v["x"], v["y"], v["z"]), yaw_mode=1, yaw=v["yaw"])
+        elif kind == "full_state":
+            self._set_client(True, mode=(1, 1, 1), p=(v["x"], v["y"], v["z"]), v=(v["vx"], v["vy"], v["vz"]),
+                             a=(v["ax"], v["ay"], v["az"]))
+        elif kind == "manual":
+            self._set_client(v["thrust"] > 0, mode=(0, 0, 2), rp=(v["roll"], v["pitch"]), thrust=v["thrust"])
+        elif kind == "notify_setpoint_stop":
+            lib.shim_commander_notify_stop(int(v["remain_valid_ms"]))
+        elif kind == "hl_takeoff":
+            lib.crtpCommanderHighLevelTakeoff(float(v["height"]), float(v["duration"]))
+        elif kind == "hl_land":
+            lib.crtpCommanderHighLevelLand(float(v["height"]), float(v["duration"]))
+        elif kind == "hl_go_to":
+            lib.crtpCommanderHighLevelGoTo(float(v["x"]), float(v["y"]), float(v["z"]), float(v["yaw"]),
+                                           float(v["duration"]), bool(v["relative"]))
+        elif kind == "hl_stop":
+            lib.crtpCommanderHighLevelStop()
+        # arm, crash_recovery, hl_set_group_mask: nothing to model
 
     def on_appchannel(self, data: bytes) -> bytes | None:
+        """To the app's channel; its reply comes from its next tick (:meth:`outgoing_appchannel`)."""
         self.appchannel_rx += 1
-        p = self.dyn.p
-        head = struct.pack(APP_STATUS_FORMAT, self.status & 0xFF, int(self.app_enabled), self.psi,
-                           float(p[0]), float(p[1]), float(p[2]))
-        return head + bytes(data[:30 - APP_STATUS_SIZE])
+        if not self.link_cut:
+            self.app.lib.shim_appchannel_push(data, len(data))
+        return None
+
+    def outgoing_appchannel(self) -> list[bytes]:
+        out, self._outgoing = self._outgoing, []
+        return [] if self.link_cut else out
+
+    @property
+    def link_cut(self) -> bool:
+        return self.sim_ms < self._link_cut_until
+
+    def cut_link(self, seconds: float) -> None:
+        """Link loss for ``seconds``: packets both ways are dropped and ``crtpIsConnected`` is false
+        (what the radio link reports after 1 s without packets)."""
+        with self.lock:
+            self._cut_start = self.sim_ms
+            self._link_cut_until = self.sim_ms + int(seconds * 1000)
 
     # ------------------------------------------------------------------ simulation
-    def _toward(self, target: np.ndarray) -> np.ndarray:
-        u = EXT_GAIN * (target - self.dyn.p)
-        n = float(np.linalg.norm(u))
-        return u * (self.ext_speed / n) if n > self.ext_speed else u
-
-    def _client_velocity(self) -> np.ndarray:
-        """What the client's latest setpoint asks for (m/s, world frame)."""
-        if self._ext is None:
-            return self._toward(self._hold)
-        kind, v, t = self._ext
-        if t >= 0 and self.sim_ms - t > SETPOINT_TIMEOUT_MS:
-            self._hold = self.dyn.p.copy()
-            self._ext = None
-            return np.zeros(3)
-        p = self.dyn.p
-        if kind == "target":
-            return self._toward(np.array([v["x"], v["y"], v["z"]]))
-        if kind in ("velocity_world", "full_state"):
-            if kind == "full_state":
-                return self._toward(np.array([v["x"], v["y"], v["z"]])) + np.array([v["vx"], v["vy"], v["vz"]])
-            return np.array([v["vx"], v["vy"], v["vz"]])
-        if kind == "hover":  # body-frame velocity; the model does not yaw, so body = world
-            return np.array([v["vx"], v["vy"], EXT_GAIN * (v["zdistance"] - p[2])])
-        if kind == "zdistance":
-            return np.array([0.0, 0.0, EXT_GAIN * (v["zdistance"] - p[2])])
-        return np.zeros(3)
-
     def step(self) -> None:
-        """One app tick at ``sim_ms`` and the vehicle flown for the app's period (caller holds ``lock``)."""
+        """One 1 ms tick at ``sim_ms``: the app when due, the stabilizer's setpoint choice and the
+        vehicle (caller holds ``lock``)."""
         lib = self.app.lib
-        pe, ve = self.dyn.estimate()
-        if self.estimate_noise_m > 0:
-            pe = pe + self._rng.normal(0.0, self.estimate_noise_m, 3)
-        lib.shim_set_estimate(float(pe[0]), float(pe[1]), float(pe[2]), float(ve[0]), float(ve[1]), float(ve[2]))
-        period = max(1, self.app.tick(self.sim_ms, self.sim_ms * 1000, self._section_us))
-        if self.app_enabled:
-            lib.shim_commander_get(self._rec)
-            u = np.array([self._rec.vx, self._rec.vy, self._rec.vz], np.float64)
-            self._hold = self.dyn.p.copy()
-            self._ext = None
-        else:
-            u = self._client_velocity()
-        self.u = u
-        self.dyn.step(u, period * 1e-3)
-        self.sim_ms += period
-        self.steps += 1
+        lib.shim_set_tick(self.sim_ms & 0xFFFFFFFF)
+        # the radio link's crtpIsConnected: false 1 s after the last packet
+        lib.shim_set_connected(0 if self.link_cut and self.sim_ms - self._cut_start >= RADIO_TIMEOUT_MS else 1)
+        if self.sim_ms >= self._next_app:
+            pe, ve = self.dyn.estimate()
+            if self.estimate_noise_m > 0:
+                pe = pe + self._rng.normal(0.0, self.estimate_noise_m, 3)
+            lib.shim_set_estimate(float(pe[0]), float(pe[1]), float(pe[2]), float(ve[0]), float(ve[1]),
+                                  float(ve[2]))
+            lib.shim_set_attitude(0.0, 0.0, 0.0, self.dyn.thrust())
+            lib.shim_set_usec(self.sim_ms * 1000, self._section_us)
+            period = max(1, int(lib.polycc_app_tick()))
+            self._next_app = self.sim_ms + period
+            self.steps += 1
+            while True:
+                n = lib.shim_appchannel_pop(self._app_buf, 30)
+                if n == 0:
+                    break
+                self._outgoing.append(bytes(self.app.ffi.buffer(self._app_buf, n)))
+        self._pos[0:3] = self.dyn.p.tolist()
+        self._vel[0:3] = self.dyn.v.tolist()
+        lib.shim_stabilizer_step(self._pos, self._vel, 0.0, self._sp)
+        self.u = velocity_command(self._sp, self.dyn.p, self.dyn.v) if self._sp.motors_on else np.zeros(3)
+        self.dyn.step(self._sp, 1e-3)
+        self.sim_ms += 1
 
     def advance_to(self, t_ms: int, max_behind_ms: int | None = None) -> None:
         """Step until the simulated clock passes ``t_ms``; if it is more than ``max_behind_ms``

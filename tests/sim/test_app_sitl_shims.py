@@ -14,7 +14,7 @@ from polycc.geometry.halfplanes import axis_box
 from polycc.onboard.app import STATUS_NAMES
 from polycc.sim.app_ffi import SRC, AppSim
 
-LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1)]
+LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2)]
 # PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09
 PARAMS = [("enable", 0x08), ("goalX", 0x06), ("goalY", 0x06), ("goalZ", 0x06), ("vmax", 0x06), ("beta", 0x06),
           ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09)]
@@ -33,7 +33,9 @@ def fresh(app):
     return app
 
 
-def _enable(app, goal=(4.0, 0.5, 0.5)):
+def _enable(app, goal=(4.0, 0.5, 0.5), airborne=(-1.0, 0.5, 0.5)):
+    if airborne is not None:
+        app.airborne(airborne)
     for n, v in zip(("goalX", "goalY", "goalZ"), goal):
         app.set_param("polycc", n, v)
     app.set_param("polycc", "enable", 1)
@@ -83,7 +85,7 @@ def test_enabled_streams_world_velocity_setpoints(fresh):
         assert fresh.tick(2 * k, usec=2000 * k, section_us=17) == 2
         rec = fresh.commander()
         assert rec.count == k + 1 and rec.tick == 2 * k
-    assert rec.priority == 2  # COMMANDER_PRIORITY_CRTP
+    assert rec.priority == 3  # COMMANDER_PRIORITY_EXTRX: ground setpoints are ignored while the app flies
     assert rec.modes[:3] == (2, 2, 2) and rec.modes[5] == 2  # modeVelocity for x, y, z and yaw (rate)
     assert rec.modes[3:5] == (0, 0) and not rec.velocity_body and rec.yaw_rate == 0.0
     assert rec.velocity[0] > 0.0  # towards the goal at +x
@@ -101,7 +103,9 @@ def test_rate_param_sets_period_and_keeps_watchdog_fed(fresh, rate, period):
     assert period <= 100  # setpoints at least every 100 ms: the 500 ms watchdog never fires
 
 
-def test_disable_relaxes_priority_once(fresh):
+def test_disable_hands_over_to_the_high_level_commander_once(fresh):
+    """Disabling in the air: one go_to to the stopping point (the high-level commander holds), one
+    relax, and never a stop setpoint."""
     _enable(fresh)
     fresh.set_estimate((-1.0, 0.5, 0.5))
     fresh.tick(0)
@@ -110,11 +114,42 @@ def test_disable_relaxes_priority_once(fresh):
         fresh.tick(2 * k)
     rec = fresh.commander()
     assert rec.relax_count == 1 and rec.active_priority == 1 and rec.count == 1
+    assert rec.hl_gotos == 1 and rec.hl_state == 1  # flying: holding the position
+    tr = fresh.trace()
+    assert np.allclose(list(tr.handover)[:3], (-1.0, 0.5, 0.5), atol=1e-6) and tr.handover[3] >= 0.5
     assert fresh.get_log("polycc", "status") == 0
 
 
+def test_enabled_on_the_ground_sends_nothing(fresh):
+    _enable(fresh, airborne=None)
+    fresh.set_estimate((-1.0, 0.5, 0.0))
+    for k in range(10):
+        fresh.tick(2 * k)
+    assert fresh.commander().count == 0 and fresh.get_log("polycc", "status") == 7  # take off first
+
+
+def test_unsupported_controller_is_refused(fresh):
+    fresh.lib.shim_set_controller(2)  # Mellinger
+    _enable(fresh)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    fresh.tick(0)
+    assert fresh.commander().count == 0 and fresh.get_log("polycc", "status") == 9
+
+
+def test_the_worst_case_lowers_the_rate(tmp_path):
+    """A scene whose certified worst case does not fit half a 2 ms tick runs at a lower rate."""
+    write_outputs(tmp_path, [axis_box([0, 0, 0], [1, 1, 1])], {"kappa": 100.0, "worst_cycles": 400_000})
+    app = AppSim(tmp_path / "polytopes.h")
+    app.reset()
+    _enable(app)
+    app.set_estimate((-1.0, 0.5, 0.5))
+    period = app.tick(0)
+    assert period == 5 and app.get_log("polycc", "rate") == 200  # 400k cycles = 2.4 ms <= half of 5 ms
+    app.reset()
+
+
 @pytest.mark.parametrize("case", ["nan", "inf", "far", "variance", "inside", "bad_param"])
-def test_unsafe_inputs_hover_in_place(fresh, case):
+def test_unsafe_inputs_hold_the_position(fresh, case):
     _enable(fresh)
     x = (-1.0, 0.5, 0.5)
     expect = {"nan": 3, "inf": 3, "far": 3, "variance": 3, "inside": 5, "bad_param": 6}[case]
@@ -124,16 +159,22 @@ def test_unsafe_inputs_hover_in_place(fresh, case):
         x = (0.0, math.inf, 0.5)
     elif case == "far":
         x = (0.0, 0.0, 2000.0)
-    elif case == "variance":
-        fresh.set_position_variance((0.02, 1e-4, 1e-4))
     elif case == "inside":
         x = (0.3, 0.45, 0.8)  # inside the first box, off its centre (where grad psi = 0)
     elif case == "bad_param":
         fresh.set_param("polycc", "vmax", 0.0)
+    if case in ("nan", "inf", "far", "variance"):  # a good estimate first: the hold is where it was
+        fresh.set_estimate((-1.0, 0.5, 0.5))
+        fresh.tick(0)
+        x0 = (-1.0, 0.5, 0.5)
+    else:
+        x0 = x
+    if case == "variance":
+        fresh.set_position_variance((0.02, 1e-4, 1e-4))
     fresh.set_estimate(x)
-    fresh.tick(0)
+    fresh.tick(2)
     rec = fresh.commander()
-    assert rec.count == 1 and rec.velocity == (0.0, 0.0, 0.0) and rec.modes[:3] == (2, 2, 2)
+    assert rec.modes[:3] == (1, 1, 1) and rec.position == pytest.approx(x0, abs=1e-6)  # position hold
     assert fresh.get_log("polycc", "status") == expect
     assert fresh.get_log("polycc", "active") == 0
 
@@ -147,7 +188,7 @@ def test_stale_estimate_hovers_until_it_moves(fresh):
         statuses.append(fresh.get_log("polycc", "status"))
     stale_from = statuses.index(4)
     assert stale_from * 2 == 250  # POLYCC_APP_STALE_MS of identical bits
-    assert all(s == 4 for s in statuses[stale_from:]) and fresh.commander().velocity == (0.0, 0.0, 0.0)
+    assert all(s == 4 for s in statuses[stale_from:]) and fresh.commander().modes[:3] == (1, 1, 1)
     fresh.set_estimate((-1.0, 0.5, 0.50001))
     fresh.tick(400)
     assert fresh.get_log("polycc", "status") == 1
@@ -167,7 +208,7 @@ def test_missing_estimator_variables(app):
     app.lib.polycc_app_init()
     _enable(app)
     app.tick(0)
-    assert app.get_log("polycc", "status") == 2 and app.commander().velocity == (0.0, 0.0, 0.0)
+    assert app.get_log("polycc", "status") == 2 and app.commander().count == 0  # nothing to hold: nothing sent
     app.reset()
 
 

@@ -77,40 +77,60 @@ def test_params_and_logs_are_the_app_variables(model):
     assert x.get() == pytest.approx(START[0], abs=0.01)  # estimate noise 1 mm
 
 
-@pytest.mark.parametrize("kind, values, expect", [
-    ("hl_takeoff", {"group_mask": 0, "height": 1.2, "yaw": 0.0, "use_current_yaw": 1, "duration": 2.0},
-     (-0.6, 0.05, 1.2)),
-    ("hl_go_to", {"group_mask": 0, "relative": 1, "linear": 0, "x": 0.3, "y": 0.0, "z": -0.2, "yaw": 0.0,
-                  "duration": 1.0}, (-0.3, 0.05, 0.5)),
-    ("position", {"x": -0.5, "y": 0.0, "z": 0.9, "yaw": 0.0}, (-0.5, 0.0, 0.9)),
-])
-def test_client_setpoints_fly_the_vehicle(model, kind, values, expect):
-    model.on_setpoint(kind, values)
-    for t in range(100, 6000, 100):  # a streaming client resends low-level setpoints
-        if kind == "position":
-            model.on_setpoint(kind, values)
+@pytest.fixture
+def floor_model(scene_dir):
+    m = SitlDeviceModel(scene_dir, start=(START[0], START[1], 0.0), on_floor=True)
+    yield m
+    m.stop()
+
+
+def test_hl_takeoff_go_to_land_from_the_floor(floor_model):
+    """The high-level commander as on a Crazyflie: takeoff from the floor, go_to, land; the motors
+    stop on the floor at the end."""
+    m = floor_model
+    m.advance_to(500)
+    assert not m.motors_on and m.position[2] == 0.0
+    m.on_setpoint("hl_takeoff", {"height": 1.0, "duration": 2.0})
+    m.advance_to(4000)
+    assert np.allclose(m.position, (START[0], START[1], 1.0), atol=0.02), m.summary()
+    m.on_setpoint("hl_go_to", {"relative": 1, "x": 0.3, "y": 0.0, "z": -0.2, "yaw": 0.0, "duration": 1.0})
+    m.advance_to(6500)
+    assert np.allclose(m.position, (START[0] + 0.3, START[1], 0.8), atol=0.02), m.summary()
+    m.on_setpoint("hl_land", {"height": 0.0, "duration": 2.0})
+    m.advance_to(10000)
+    assert m.position[2] < 0.01 and not m.motors_on and m.dyn.impact_speed_ms < 0.5
+
+
+def test_position_setpoints_fly_and_a_stop_setpoint_cuts_the_motors(model):
+    for t in range(100, 4000, 100):  # a streaming client resends low-level setpoints
+        model.on_setpoint("position", {"x": -0.5, "y": 0.0, "z": 0.9, "yaw": 0.0})
         model.advance_to(t)
-    assert np.allclose(model.position, expect, atol=0.02), model.summary()
+    assert np.allclose(model.position, (-0.5, 0.0, 0.9), atol=0.02), model.summary()
+    model.on_setpoint("stop", {})
+    model.advance_to(4300)
+    assert not model.motors_on and model.position[2] < 0.8  # as on a Crazyflie: it falls
 
 
 def test_hover_setpoint_and_watchdog(model):
+    """The supervisor's watchdog: a setpoint older than 0.5 s levels the vehicle, older than 2 s
+    stops the motors (the real firmware's behaviour, which the fast model follows)."""
     model.on_setpoint("hover", {"vx": 0.2, "vy": 0.0, "yawrate": 0.0, "zdistance": 1.0})
-    model.advance_to(3000)  # no resend: the watchdog stops it after 0.5 s
-    p = model.position
-    assert 0.0 < p[0] - START[0] < 0.2 and START[2] < p[2] < 1.0
-    model.advance_to(6000)
-    assert np.linalg.norm(model.position - p) < 0.05  # hovering since
+    model.advance_to(400)
+    assert model.motors_on
+    model.advance_to(2600)
+    assert not model.motors_on
 
 
 def test_app_enabled_wins_and_flies_to_goal(model):
     for name, v in zip(("goalX", "goalY", "goalZ", "enable"), (*GOAL, 1)):
         model.app.set_param("polycc", name, v)
-    model.on_setpoint("hl_takeoff", {"height": 2.0})  # ignored while the app flies
     model.advance_to(15000)
     assert np.linalg.norm(model.position - GOAL) < 0.05 and model.status == 1
-    reply = decode_app_status(model.on_appchannel(b"ping"))
+    model.on_appchannel(b"ping")
+    model.advance_to(15010)
+    reply = decode_app_status(model.outgoing_appchannel()[-1])
     assert reply["status"] == 1 and reply["enable"] == 1 and reply["echo"] == b"ping"
-    assert reply["x"] == pytest.approx(model.position[0], abs=1e-5)
+    assert reply["x"] == pytest.approx(model.dyn.estimate()[0][0], abs=0.01)
 
 
 def test_realtime_thread_follows_the_wall_clock(model):
@@ -176,21 +196,26 @@ def check(out: dict, model: SitlDeviceModel, dev: CrtpDevice) -> None:
     assert all(b - a == 10 for a, b in zip(stamps, stamps[1:])), stamps
     app = decode_app_status(out["app"][0])
     assert app["echo"] == b"hello" and app["status"] == 0 and app["enable"] == 0
-    assert app["x"] == pytest.approx(START[0], abs=1e-6)  # the true position
+    assert app["x"] == pytest.approx(START[0], abs=0.01)  # the estimate (1 mm noise)
     assert out["connect_s"] < 2.0
 
 
 def takeoff(uri: str, model: SitlDeviceModel, height: float) -> float:
-    """A user's takeoff script (high-level commander), then wait for the height; returns z reached."""
+    """A user's takeoff script (high-level commander, from the floor), then wait for the height;
+    returns z reached (cflib's close_link then stops the motors, as on a Crazyflie)."""
     with SyncCrazyflie(uri, cf=Crazyflie(rw_cache=None)) as scf:
+        # the first session's cflib close_link left the commander at CRTP priority (its parting
+        # setpoint): high-level commands are ignored until the priority is handed back
+        scf.cf.commander.send_notify_setpoint_stop()
         scf.cf.high_level_commander.takeoff(height, 1.0)
         deadline = time.monotonic() + 5.0
         while time.monotonic() < deadline and abs(model.position[2] - height) > 0.02:
             time.sleep(0.05)
-    return float(model.position[2])
+        return float(model.position[2])
 
 
-def test_cflib_drives_sitl_over_udp(model):
+def test_cflib_drives_sitl_over_udp(floor_model):
+    model = floor_model
     dev = CrtpDevice(model)
     with model, UdpDeviceServer(dev, port=0) as srv:
         out = run_with_timeout(lambda: scenario(srv.uri, AppValues(model)))
@@ -237,14 +262,18 @@ def _start_sim_device(scene_dir, *extra):
     raise AssertionError("sim-device printed no URI:\n" + "".join(lines))
 
 
-def fly_end_to_end(scene_dir, start, goal, csv_path, timeout_s: float = 15.0) -> list[dict]:
+def fly_end_to_end(scene_dir, start, goal, csv_path, timeout_s: float = 15.0, floor: bool = False) -> list[dict]:
     """Two terminals: `polycc sim-device OUT --udp ...` (a subprocess, stopped with Ctrl-C) and
-    `polycc fly --uri ... --goal ...` (in-process). Returns the CSV rows after checking arrival."""
-    proc, uri, lines = _start_sim_device(scene_dir, "--start=" + ",".join(map(str, start)))
+    `polycc fly --uri ... --goal ...` (in-process; from the floor with --takeoff ... --land). Returns
+    the CSV rows after checking arrival."""
+    extra = [] if floor else ["--airborne"]
+    proc, uri, lines = _start_sim_device(scene_dir, "--start=" + ",".join(map(str, start)), *extra)
+    fly_args = ["--takeoff", str(start[2]), "--land"] if floor else []
     try:
         rc = run_with_timeout(lambda: main(["fly", "--uri", uri, "--goal", ",".join(map(str, goal)), "--csv",
-                                            str(csv_path), "--timeout", str(timeout_s), "--arrive-tol", "0.05"]),
-                              timeout_s + 5.0)
+                                            str(csv_path), "--timeout", str(timeout_s), "--arrive-tol", "0.05",
+                                            *fly_args]),
+                              timeout_s + 30.0)
         assert rc == 0
     finally:
         proc.send_signal(signal.SIGINT)
@@ -258,11 +287,16 @@ def fly_end_to_end(scene_dir, start, goal, csv_path, timeout_s: float = 15.0) ->
     with open(csv_path) as f:
         rows = list(csv.DictReader(f))
     assert len(rows) > 50
-    assert min(float(r["polycc.psi"]) for r in rows) >= 0.0
-    assert {r["polycc.status"] for r in rows[2:]} == {"1"}  # the app flew the whole way (status ok)
+    status = [r["polycc.status"] for r in rows]
+    first, last = status.index("1"), len(status) - 1 - status[::-1].index("1")
+    flying = rows[first:last + 1]
+    assert min(float(r["polycc.psi"]) for r in flying) >= 0.0
+    assert set(status[first:last + 1]) == {"1"}  # the app flew the whole way once engaged (status ok)
     assert float(rows[0]["stateEstimate.x"]) == pytest.approx(start[0], abs=0.05)
-    end = np.array([float(rows[-1][f"stateEstimate.{a}"]) for a in "xyz"])
-    assert np.linalg.norm(end - np.asarray(goal)) <= 0.05
+    end = np.array([float(flying[-1][f"stateEstimate.{a}"]) for a in "xyz"])
+    assert np.linalg.norm(end - np.asarray(goal)) <= 0.06
+    if floor:
+        assert float(rows[-1]["stateEstimate.z"]) < 0.08  # landed
     t = [float(r["time_s"]) for r in rows]
     assert all(b > a for a, b in zip(t, t[1:]))
     return rows
@@ -270,6 +304,10 @@ def fly_end_to_end(scene_dir, start, goal, csv_path, timeout_s: float = 15.0) ->
 
 def test_fly_end_to_end_against_sim_device(scene_dir, tmp_path):
     fly_end_to_end(scene_dir, START, GOAL, tmp_path / "fly.csv")
+
+
+def test_fly_takeoff_to_landing_against_sim_device(scene_dir, tmp_path):
+    fly_end_to_end(scene_dir, START, GOAL, tmp_path / "fly.csv", timeout_s=20.0, floor=True)
 
 
 @pytest.mark.slow
@@ -286,7 +324,7 @@ def test_fly_demo_arena_end_to_end(tmp_path):
                             "-o", demo]) == 0
     with open(os.path.join(demo, "arena.json")) as f:
         arena = json.load(f)
-    fly_end_to_end(demo, arena["start"], arena["goal"], tmp_path / "fly.csv", timeout_s=20.0)
+    fly_end_to_end(demo, arena["start"], arena["goal"], tmp_path / "fly.csv", timeout_s=30.0, floor=True)
 
 
 def test_fly_env_uri_default(monkeypatch):
@@ -300,17 +338,18 @@ def test_fly_env_uri_default(monkeypatch):
     assert p.parse_args(["fly", "--goal", "0,0,1"]).uri == "udp://10.0.0.1:1234"
 
 
-def test_fly_ctrl_c_disables_the_app_and_stops(model):
-    """Ctrl-C mid-flight (raised from the live display callback): polycc.enable = 0 and a stop setpoint
-    reach the device, and the partial log is on the exception for the CSV."""
+def test_fly_ctrl_c_disables_the_app_and_holds(model):
+    """Ctrl-C mid-flight (raised from the live display callback): polycc.enable = 0 reaches the device,
+    the app hands over to the high-level commander (which holds), no stop setpoint is sent, and the
+    partial log is on the exception for the CSV."""
     from polycc.cli import fly
 
     calls = []
 
     def interrupt(log):
         calls.append(len(log.rows))
-        if len(calls) == 5:
-            raise KeyboardInterrupt
+        if log.latest.get("polycc.status") == 1 and log.latest.get("stateEstimate.x", START[0]) > START[0] + 0.1:
+            raise KeyboardInterrupt  # mid-flight, with the app flying
 
     with model, UdpDeviceServer(CrtpDevice(model), port=0) as srv:
         def go():
@@ -322,4 +361,5 @@ def test_fly_ctrl_c_disables_the_app_and_stops(model):
         with model.lock:
             enabled, kinds, x = model.app_enabled, list(model.setpoints), model.position[0]
     assert log.outcome == "interrupted" and log.rows and log.columns[-1] == "polycc.psi"
-    assert not enabled and "stop" in kinds and START[0] < x < GOAL[0]
+    assert not enabled and "stop" not in kinds and START[0] < x < GOAL[0]
+    assert model.motors_on and model.app.commander().hl_gotos >= 1  # handed over, holding

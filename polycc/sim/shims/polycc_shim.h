@@ -66,9 +66,52 @@ typedef struct shim_commander_record {
     int mode_x, mode_y, mode_z, mode_roll, mode_pitch, mode_yaw; /* stab_mode_t values */
     int velocity_body;       /* 1 body frame, 0 world frame */
     float vx, vy, vz;        /* m/s */
+    float px, py, pz;        /* m (position setpoints) */
     float yaw_rate;          /* deg/s */
+    int hl_state;            /* high-level planner: 0 idle (stopped), 1 flying, 2 landing */
+    int hl_takeoffs, hl_lands, hl_gotos, hl_stops; /* calls of the high-level commander's API */
 } shim_commander_record_t;
+/* The last setpoint with priority above HIGHLEVEL (the app's or a client's), and the
+ * high-level commander's state. */
 void shim_commander_get(shim_commander_record_t *out);
+
+/* One stabilizer step (call once per 1 ms tick, after shim_set_tick): the high-level commander at
+ * 100 Hz, the commander's choice and the supervisor's setpoint watchdog, as the firmware's
+ * stabilizer loop does.  ``out`` is the setpoint the controller gets; motors_on is 0 for the null
+ * setpoint (the motors stop). */
+typedef struct shim_setpoint {
+    int motors_on;
+    int mode_x, mode_y, mode_z, mode_roll, mode_pitch, mode_yaw; /* stab_mode_t */
+    int velocity_body;
+    float px, py, pz;     /* m */
+    float vx, vy, vz;     /* m/s */
+    float ax, ay, az;     /* m/s^2 (feed-forward) */
+    float roll, pitch, yaw; /* deg */
+    float yaw_rate;       /* deg/s */
+    float thrust;
+    int priority;         /* the commander's active priority */
+    uint32_t age_ms;      /* age of the commander's setpoint */
+} shim_setpoint_t;
+void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg, shim_setpoint_t *out);
+/* A client's setpoint at a commander priority (motors_on = 0: the stop setpoint), and cflib's
+ * notify_setpoint_stop. */
+void shim_commander_set(const shim_setpoint_t *sp, int priority);
+void shim_commander_notify_stop(int remain_ms);
+/* As after a finished high-level takeoff: hovering at (x, y, z) under the high-level commander. */
+void shim_hl_hover_at(float x, float y, float z);
+int shim_motors_on(void);
+
+/* Supervisor, controller and link (as the firmware reports them to apps). */
+void shim_set_supervisor(int is_locked, int is_crashed, int is_tumbled);
+void shim_set_controller(int type); /* ControllerType; also written by the param stabilizer.controller */
+void shim_set_connected(int is_connected);
+
+/* App channel: packets from the ground (push) and the app's replies (pop); 0 when empty. */
+int shim_appchannel_push(const void *data, size_t length);
+size_t shim_appchannel_pop(void *buffer, size_t max_length);
+
+/* Attitude and thrust of the simulated vehicle (log stateEstimate.roll/pitch/yaw, stabilizer.*). */
+void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thrust);
 
 /* DEBUG_PRINT output since the last read (NUL-terminated, truncated to n-1 bytes). */
 size_t shim_debug_read(char *buf, size_t n);

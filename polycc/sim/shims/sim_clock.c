@@ -17,6 +17,8 @@ void shim_reset(void)
     shimLogReset();
     shimCommanderReset();
     shimDebugReset();
+    shimAppchannelReset();
+    shimPlatformReset();
 }
 
 void shim_set_tick(uint32_t t)

@@ -1,6 +1,9 @@
-/* Private reset hooks of the host shim modules (called by shim_reset). */
+/* Private reset hooks of the host shim modules (called by shim_reset), and cross-module setters. */
 #pragma once
 
 void shimLogReset(void);
 void shimCommanderReset(void);
 void shimDebugReset(void);
+void shimAppchannelReset(void);
+void shimPlatformReset(void);
+void shimLogSetYaw(float roll_deg, float pitch_deg, float yaw_deg);

@@ -20,7 +20,7 @@ static shim_log_var_t vars[SHIM_MAX_VARS];
 static int nVars;
 static int kalmanPresent = 1, estimatePresent = 1;
 
-static float estX, estY, estZ, estVx, estVy, estVz;
+static float estX, estY, estZ, estVx, estVy, estVz, estRoll, estPitch, estYaw;
 static float varX = 1e-4f, varY = 1e-4f, varZ = 1e-4f;
 
 LOG_GROUP_START(stateEstimate)
@@ -30,7 +30,17 @@ LOG_ADD_CORE(LOG_FLOAT, z, &estZ)
 LOG_ADD_CORE(LOG_FLOAT, vx, &estVx)
 LOG_ADD_CORE(LOG_FLOAT, vy, &estVy)
 LOG_ADD_CORE(LOG_FLOAT, vz, &estVz)
+LOG_ADD_CORE(LOG_FLOAT, roll, &estRoll)
+LOG_ADD_CORE(LOG_FLOAT, pitch, &estPitch)
+LOG_ADD_CORE(LOG_FLOAT, yaw, &estYaw)
 LOG_GROUP_STOP(stateEstimate)
+
+void shimLogSetYaw(float roll_deg, float pitch_deg, float yaw_deg)
+{
+    estRoll = roll_deg;
+    estPitch = pitch_deg;
+    estYaw = yaw_deg;
+}
 
 LOG_GROUP_START(kalman)
 LOG_ADD(LOG_FLOAT, varX, &varX)

@@ -1,0 +1,87 @@
+/* Host versions of the firmware log and parameter groups that standard Crazyflie tools use
+ * (cflib's MotionCommander and PositionHlCommander, cfclient's tabs) and that the app reads:
+ * stabilizer.{roll,pitch,yaw,thrust} and stabilizer.controller/estimator, commander.enHighLevel,
+ * kalman.resetEstimation, supervisor.info, pm.vbat/state, deck.* flags (no deck attached). */
+#include <string.h>
+
+#include "controller.h"
+#include "log.h"
+#include "param.h"
+#include "polycc_shim.h"
+#include "sim_internal.h"
+
+static float attRoll, attPitch, attYaw, thrust;
+static uint8_t controllerParam = ControllerTypePID;
+static uint8_t estimatorParam = 2; /* Kalman */
+static uint8_t stopParam, enHighLevel, resetEstimation, infdmp;
+static uint16_t landedTimeout = 1000u, supervisorInfo;
+static float vbat = 4.0f;
+static int8_t pmState;
+static uint8_t deckNone;
+
+void shimPlatformReset(void)
+{
+    attRoll = attPitch = attYaw = thrust = 0.0f;
+    controllerParam = ControllerTypePID;
+    estimatorParam = 2;
+    stopParam = enHighLevel = resetEstimation = infdmp = 0;
+    supervisorInfo = 0;
+}
+
+void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thrust_cmd)
+{
+    attRoll = roll_deg;
+    attPitch = pitch_deg;
+    attYaw = yaw_deg;
+    thrust = thrust_cmd;
+    shimLogSetYaw(roll_deg, pitch_deg, yaw_deg);
+}
+
+static void controllerChanged(void)
+{
+    shim_set_controller(controllerParam == ControllerTypeAutoSelect ? ControllerTypePID : controllerParam);
+}
+
+LOG_GROUP_START(stabilizer)
+LOG_ADD(LOG_FLOAT, roll, &attRoll)
+LOG_ADD(LOG_FLOAT, pitch, &attPitch)
+LOG_ADD(LOG_FLOAT, yaw, &attYaw)
+LOG_ADD(LOG_FLOAT, thrust, &thrust)
+LOG_GROUP_STOP(stabilizer)
+
+LOG_GROUP_START(supervisor)
+LOG_ADD(LOG_UINT16, info, &supervisorInfo)
+LOG_GROUP_STOP(supervisor)
+
+LOG_GROUP_START(pm)
+LOG_ADD_CORE(LOG_FLOAT, vbat, &vbat)
+LOG_ADD_CORE(LOG_INT8, state, &pmState)
+LOG_GROUP_STOP(pm)
+
+PARAM_GROUP_START(stabilizer)
+PARAM_ADD_CORE(PARAM_UINT8, estimator, &estimatorParam)
+PARAM_ADD_CORE_WITH_CALLBACK(PARAM_UINT8, controller, &controllerParam, &controllerChanged)
+PARAM_ADD_CORE(PARAM_UINT8, stop, &stopParam)
+PARAM_GROUP_STOP(stabilizer)
+
+PARAM_GROUP_START(commander)
+PARAM_ADD_CORE(PARAM_UINT8, enHighLevel, &enHighLevel)
+PARAM_GROUP_STOP(commander)
+
+PARAM_GROUP_START(kalman)
+PARAM_ADD_CORE(PARAM_UINT8, resetEstimation, &resetEstimation)
+PARAM_GROUP_STOP(kalman)
+
+PARAM_GROUP_START(supervisor)
+PARAM_ADD(PARAM_UINT8, infdmp, &infdmp)
+PARAM_ADD(PARAM_UINT16, landedTimeout, &landedTimeout)
+PARAM_GROUP_STOP(supervisor)
+
+PARAM_GROUP_START(deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcFlow2, &deckNone)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcZRanger2, &deckNone)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcMultiranger, &deckNone)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcLighthouse4, &deckNone)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcLoco, &deckNone)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcAI, &deckNone)
+PARAM_GROUP_STOP(deck)

@@ -1,0 +1,344 @@
+"""Flight scenarios flown with real cflib against a simulated Crazyflie: the fast host model
+(`polycc sim-device`) or the real firmware's SITL. The same scenario runs on both, so their
+results can be compared (the differential test) and each can be checked against what a
+Crazyflie user expects (take off, hand over, land, lose the link, never drop the drone).
+
+A scenario is ``fn(uri, world, arena) -> dict``: ``world`` is the simulator's side door, with
+``cut_link(seconds)`` (drop the link both ways) and ``truth()`` -> (position m, velocity m/s,
+motors_on); ``arena`` has ``start`` (x, y on the floor below it) and ``goal`` (through a hoop).
+Every scenario starts on the floor with the motors off. Results are plain dicts: series of
+(time s, x, y, z, vz, motors_on, status) sampled every 20 ms, and scalar measurements.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+
+POS = ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z")
+TAKEOFF_Z = 0.9  # m
+TAKEOFF_S = 2.0
+
+
+class Recorder:
+    """Samples the simulator's true state and the app's status (from the cflib log) every 20 ms."""
+
+    def __init__(self, world, log: dict):
+        self.world, self.log = world, log
+        self.rows: list[tuple] = []
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.wait(0.02):
+            p, v, on = self.world.truth()
+            st = self.log.get("polycc.status", -1)
+            self.rows.append((time.monotonic() - self._t0, *map(float, p), float(v[2]), int(on), int(st)))
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join(2.0)
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def array(self) -> np.ndarray:
+        return np.array(self.rows, float).reshape(-1, 7)
+
+    def since(self, t: float) -> np.ndarray:
+        a = self.array()
+        return a[a[:, 0] >= t]
+
+
+from polycc.ground.fly import close_without_stop  # noqa: E402
+
+
+def _connect(uri: str):
+    import cflib.crtp
+    from cflib.crazyflie import Crazyflie
+    from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
+    from cflib.crtp.serialdriver import SerialDriver
+
+    if SerialDriver not in cflib.crtp.CLASSES:
+        cflib.crtp.init_drivers(enable_serial_driver=True)
+    scf = SyncCrazyflie(uri, cf=Crazyflie(rw_cache=None))
+    scf.open_link()
+    scf.wait_for_params()
+    return scf
+
+
+def _start_log(scf, log: dict):
+    from cflib.crazyflie.log import LogConfig
+
+    lc = LogConfig(name="scenario", period_in_ms=20)
+    for n in POS:
+        lc.add_variable(n, "float")
+    lc.add_variable("polycc.status", "uint8_t")
+    lc.add_variable("polycc.psi", "float")
+    lc.data_received_cb.add_callback(lambda ts, data, conf: log.update(data))
+    scf.cf.log.add_config(lc)
+    lc.start()
+    return lc
+
+
+def _set(cf, name: str, value) -> None:
+    from polycc.ground.fly import set_param
+
+    set_param(cf, name, value)
+
+
+def _wait(cond, timeout_s: float, step: float = 0.05) -> bool:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(step)
+    return False
+
+
+def _takeoff(cf, world) -> bool:
+    if cf.param.toc.get_element_by_complete_name("commander.enHighLevel") is not None:
+        _set(cf, "commander.enHighLevel", 1)
+    cf.commander.send_notify_setpoint_stop()  # a previous session's cflib close_link left CRTP priority
+    cf.high_level_commander.takeoff(TAKEOFF_Z, TAKEOFF_S)
+    return _wait(lambda: abs(world.truth()[0][2] - TAKEOFF_Z) < 0.05, TAKEOFF_S + 6.0)
+
+
+def _goal(cf, goal) -> None:
+    for axis, v in zip("XYZ", goal):
+        _set(cf, f"polycc.goal{axis}", float(v))
+
+
+def _land(cf, world, result: dict) -> None:
+    z = world.truth()[0][2]
+    cf.high_level_commander.land(0.0, max(2.0, z / 0.3))
+    result["landed"] = _wait(lambda: world.truth()[0][2] < 0.05 and not world.truth()[2], max(2.0, z / 0.3) + 8.0)
+
+
+def _heartbeats(cf, stop: threading.Event):
+    def run():
+        while not stop.wait(0.1):
+            try:
+                cf.appchannel.send_packet(b"hb")
+            except Exception:
+                return
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    return t
+
+
+def full_flight(uri, world, arena) -> dict:
+    """(a) HL takeoff, enable, through the hoop to the goal; disable in the air and hold for 3 s;
+    HL land: on the floor, motors off."""
+    out: dict = {"name": "full_flight"}
+    log: dict = {}
+    scf = _connect(uri)
+    try:
+        _start_log(scf, log)
+        cf = scf.cf
+        with Recorder(world, log) as rec:
+            out["took_off"] = _takeoff(cf, world)
+            _goal(cf, arena["goal"])
+            _set(cf, "polycc.enable", 1)
+            out["arrived"] = _wait(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
+            t_dis = rec.now()
+            z_dis = world.truth()[0][2]
+            _set(cf, "polycc.enable", 0)
+            time.sleep(3.0)
+            hold = rec.since(t_dis)
+            out["hold_dz_max"] = float(np.max(np.abs(hold[:, 3] - z_dis))) if len(hold) else math.inf
+            out["status_after_disable"] = int(log.get("polycc.status", -1))
+            _land(cf, world, out)
+            time.sleep(1.0)
+            out["motors_on_end"] = bool(world.truth()[2])
+        out["series"] = rec.array().tolist()
+    finally:
+        close_without_stop(scf)
+    return out
+
+
+def enabled_on_floor(uri, world, arena) -> dict:
+    """(c) Enable on the floor: the motors stay off, the status says to take off first."""
+    out: dict = {"name": "enabled_on_floor"}
+    log: dict = {}
+    scf = _connect(uri)
+    try:
+        _start_log(scf, log)
+        cf = scf.cf
+        with Recorder(world, log) as rec:
+            _goal(cf, arena["goal"])
+            _set(cf, "polycc.enable", 1)
+            time.sleep(3.0)
+            a = rec.array()
+            out["motors_on_any"] = bool(a[:, 5].any()) if len(a) else True
+            out["status"] = int(log.get("polycc.status", -1))
+            out["z_max"] = float(a[:, 3].max()) if len(a) else math.inf
+            _set(cf, "polycc.enable", 0)
+        out["series"] = rec.array().tolist()
+    finally:
+        close_without_stop(scf)
+    return out
+
+
+def disable_at_speed(uri, world, arena) -> dict:
+    """(d) Disable while flying at ~0.5 m/s: the vehicle stops and holds (no drop)."""
+    out: dict = {"name": "disable_at_speed"}
+    log: dict = {}
+    scf = _connect(uri)
+    try:
+        _start_log(scf, log)
+        cf = scf.cf
+        with Recorder(world, log) as rec:
+            out["took_off"] = _takeoff(cf, world)
+            _set(cf, "polycc.vmax", 0.5)
+            _goal(cf, arena["goal"])
+            _set(cf, "polycc.enable", 1)
+            out["reached_speed"] = _wait(lambda: np.linalg.norm(world.truth()[1]) > 0.45, 15.0, 0.01)
+            out["speed_at_disable"] = float(np.linalg.norm(world.truth()[1]))
+            p0 = world.truth()[0].copy()
+            _set(cf, "polycc.enable", 0)
+            t0 = rec.now()
+            time.sleep(3.0)
+            after = rec.since(t0)
+            out["speed_end"] = float(np.linalg.norm(world.truth()[1]))
+            out["travel_after_disable"] = float(np.max(np.linalg.norm(after[:, 1:4] - p0, axis=1))) if len(after) \
+                else math.inf
+            out["z_min_after"] = float(after[:, 3].min()) if len(after) else -math.inf
+            out["motors_on_end"] = bool(world.truth()[2])
+            _land(cf, world, out)
+        out["series"] = rec.array().tolist()
+    finally:
+        close_without_stop(scf)
+    return out
+
+
+def link_loss(uri, world, arena, cut_s: float = 5.0) -> dict:
+    """(e) The link is cut for ``cut_s`` mid-flight: the app lands the vehicle and the motors stop."""
+    out: dict = {"name": "link_loss"}
+    log: dict = {}
+    scf = _connect(uri)
+    stop = threading.Event()
+    try:
+        _start_log(scf, log)
+        cf = scf.cf
+        with Recorder(world, log) as rec:
+            out["took_off"] = _takeoff(cf, world)
+            _heartbeats(cf, stop)
+            _goal(cf, arena["goal"])
+            _set(cf, "polycc.enable", 1)
+            time.sleep(2.0)
+            out["status_before_cut"] = int(log.get("polycc.status", -1))
+            out["z_at_cut"] = float(world.truth()[0][2])
+            world.cut_link(cut_s)
+            t0 = rec.now()
+            time.sleep(cut_s + 0.5)
+            after = rec.since(t0)
+            out["landed"] = bool(world.truth()[0][2] < 0.05)
+            out["motors_on_end"] = bool(world.truth()[2])
+            out["max_descent_speed"] = float(-after[:, 4].min()) if len(after) else math.inf
+            stop.set()
+            time.sleep(1.5)  # link back: the status says what happened
+            out["status_after"] = int(log.get("polycc.status", -1))
+        out["series"] = rec.array().tolist()
+    finally:
+        stop.set()
+        close_without_stop(scf)
+    return out
+
+
+def unsupported_controller(uri, world, arena) -> dict:
+    """(f) Mellinger selected: enable is refused with its status; the vehicle keeps hovering under
+    the high-level commander."""
+    out: dict = {"name": "unsupported_controller"}
+    log: dict = {}
+    scf = _connect(uri)
+    try:
+        _start_log(scf, log)
+        cf = scf.cf
+        with Recorder(world, log) as rec:
+            out["took_off"] = _takeoff(cf, world)
+            _set(cf, "stabilizer.controller", 2)  # Mellinger
+            time.sleep(0.5)
+            p0 = world.truth()[0].copy()
+            _goal(cf, arena["goal"])
+            _set(cf, "polycc.enable", 1)
+            time.sleep(2.0)
+            out["status"] = int(log.get("polycc.status", -1))
+            out["moved"] = float(np.linalg.norm(world.truth()[0] - p0))
+            _set(cf, "polycc.enable", 0)
+            _set(cf, "stabilizer.controller", 1)
+            time.sleep(0.5)
+            _land(cf, world, out)
+        out["series"] = rec.array().tolist()
+    finally:
+        close_without_stop(scf)
+    return out
+
+
+def ground_setpoints_while_enabled(uri, world, arena) -> dict:
+    """(g) A client streams velocity setpoints while the app is enabled: they are ignored (the app
+    owns the vehicle until disable) and the flight goes on to the goal."""
+    out: dict = {"name": "ground_setpoints_while_enabled"}
+    log: dict = {}
+    scf = _connect(uri)
+    stop = threading.Event()
+    try:
+        _start_log(scf, log)
+        cf = scf.cf
+        with Recorder(world, log) as rec:
+            out["took_off"] = _takeoff(cf, world)
+            _goal(cf, arena["goal"])
+            _set(cf, "polycc.enable", 1)
+            time.sleep(0.5)
+
+            def stream():
+                while not stop.wait(0.05):
+                    cf.commander.send_velocity_world_setpoint(0.0, 0.0, -0.5, 0.0)  # straight down
+            t = threading.Thread(target=stream, daemon=True)
+            t.start()
+            out["arrived"] = _wait(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
+            stop.set()
+            t.join(1.0)
+            a = rec.array()
+            out["z_min_flight"] = float(a[a[:, 0] > 3.0, 3].min()) if len(a) else -math.inf
+            cf.commander.send_notify_setpoint_stop()
+            _set(cf, "polycc.enable", 0)
+            time.sleep(1.0)
+            _land(cf, world, out)
+        out["series"] = rec.array().tolist()
+    finally:
+        stop.set()
+        close_without_stop(scf)
+    return out
+
+
+def polycc_fly_from_floor(uri, world, arena) -> dict:
+    """(b) `polycc fly --takeoff 0.9 --goal G --land` from the floor: lands where asked, no descent
+    faster than 1 m/s, motors off at the end."""
+    from polycc.ground.fly import fly
+
+    out: dict = {"name": "polycc_fly_from_floor"}
+    log: dict = {}
+    with Recorder(world, log) as rec:
+        fl = fly(uri, [arena["goal"]], ["polycc.psi"], timeout_s=60.0, arrive_tol=0.1, takeoff=TAKEOFF_Z, land=True)
+        time.sleep(1.0)
+    a = rec.array()
+    out["outcome"] = fl.outcome
+    out["events"] = fl.events
+    out["end"] = world.truth()[0].tolist()
+    out["max_descent_speed"] = float(-a[:, 4].min()) if len(a) else math.inf
+    out["motors_on_end"] = bool(world.truth()[2])
+    out["series"] = a.tolist()
+    return out
+
+
+SCENARIOS = {f.__name__: f for f in (full_flight, polycc_fly_from_floor, enabled_on_floor, disable_at_speed,
+                                     link_loss, unsupported_controller, ground_setpoints_while_enabled)}
