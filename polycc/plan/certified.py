@@ -169,16 +169,21 @@ class SegmentCheck:
 
 
 def certify_segment(bound: BarrierBound, a, b, req: float, min_half: float = 1e-4,
-                    max_evaluations: int = 200_000, e: float | None = None) -> SegmentCheck:
+                    max_evaluations: int = 200_000, e: float | None = None, tight: float | None = None
+                    ) -> SegmentCheck:
     """Is ``LB >= req`` on the whole segment a-b (m)? Certified by bisection: an interval of
     half-length h around a point with ``LB >= req + LIP h`` is accepted; a point with
-    ``LB < req`` (or an interval shorter than ``2 min_half`` still undecided) rejects."""
+    ``LB < req`` (or an interval shorter than ``2 min_half`` still undecided) rejects.
+
+    With ``tight`` (m), intervals are accepted only once their bound is also within ``tight`` of
+    the smallest LB seen, so ``lower`` is a certified bound within ``tight`` of the segment's
+    minimum (for reporting clearance; costs more evaluations)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     length = float(np.linalg.norm(b - a))
     e = max(bound.reach_e, req + bound.radius + 0.1) if e is None else e
     polys = near_segment(bound, a, b, e)
     t0, t1 = np.array([0.0]), np.array([1.0])
-    lowest = math.inf
+    lowest = seen = math.inf
     evals = 0
     while len(t0):
         tm = 0.5 * (t0 + t1)
@@ -187,7 +192,9 @@ def certify_segment(bound: BarrierBound, a, b, req: float, min_half: float = 1e-
         evals += len(tm)
         if np.any(v < req):
             return SegmentCheck(False, float(v.min()), evals)
-        done = v - LIP * half >= req
+        seen = min(seen, float(v.min()))
+        thr = req if tight is None else max(req, seen - tight)
+        done = v - LIP * half >= thr
         if np.any(done):
             lowest = min(lowest, float(np.min(v[done] - LIP * half[done])))
         und = ~done

@@ -2,10 +2,11 @@
 
 World frame, metres. The free space is what the drone's barrier sees: the certified lower bound
 ``LB <= psi`` of :mod:`polycc.plan.certified` for the stored polytopes and the agent radius. A plan
-is a polyline ``start, w_1, ..., goal`` on which ``LB >= margin`` (``min(margin, LB(start))`` on the
-first segment and ``min(margin, LB(goal))`` on the last), so the ``margin``-tube around every
-interior segment has ``psi >= 0``: a vehicle that switches to the next waypoint within ``margin``
-of the current one and flies straight stays where the filter lets it fly.
+is a polyline ``start, w_1, ..., goal`` on which ``LB >= margin`` (``min(margin, LB(start) - 5 mm)``
+on the first segment and ``min(margin, LB(goal) - 5 mm)`` on the last: LB at an endpoint cannot be
+certified on a segment leaving it), so the ``margin``-tube around every interior segment has
+``psi >= 0``: a vehicle that switches to the next waypoint within ``margin`` of the current one and
+flies straight stays where the filter lets it fly.
 
 Steps (:meth:`NavMap.plan`): the straight segment if it is certified; otherwise A* on the
 26-connected grid of free cells (:mod:`polycc.plan.grid`, :mod:`polycc.plan.native`) between the
@@ -76,6 +77,7 @@ class Plan:
     kappa: float
     spacing: float
     meta: dict = field(default_factory=dict)
+    profile: tuple[np.ndarray, np.ndarray] | None = None  # (arc length, reference psi) m, from NavMap.annotate
 
     @property
     def length_ratio(self) -> float:
@@ -141,67 +143,51 @@ def _fmt(p) -> str:
     return "(" + ", ".join(f"{v:.2f}" for v in np.asarray(p, float)) + ")"
 
 
-class NavMap:
-    """The certified free space of one stored scene at one agent radius, and the planner on it.
+class FreeSpace:
+    """What the drone's barrier certifies about one stored scene at one agent radius, inside the
+    map ``bounds`` ((3,), (3,)) m (default: the box of the stored polytopes; outside it nothing was
+    captured, so nothing is planned or flown there)."""
 
-    ``bounds`` ((3,), (3,)) m: the map; default the box of the stored polytopes. Outside it
-    nothing was captured, so nothing is planned there. The grid field is cached in the build
-    cache (``plan/``), keyed by the scene bytes and every setting.
-    """
-
-    def __init__(self, packed: PackedScene, kappa: float, radius: float = DEFAULT_RADIUS,
-                 margin: float = DEFAULT_MARGIN, spacing: float = DEFAULT_SPACING, bounds=None,
-                 cache: bool = True, progress=None):
-        if not (radius >= 0 and margin >= 0 and spacing > 0):
-            raise PolyccError("radius and margin must be >= 0 m and the grid spacing > 0 m")
-        t0 = time.perf_counter()
-        self.packed, self.kappa = packed, float(kappa)
-        self.radius, self.margin, self.spacing = float(radius), float(margin), float(spacing)
+    def __init__(self, packed: PackedScene, kappa: float, radius: float = DEFAULT_RADIUS, bounds=None,
+                 cache: bool = True):
+        if not radius >= 0:
+            raise PolyccError(f"agent radius {radius:g} m: must be >= 0")
+        self.packed, self.kappa, self.radius = packed, float(kappa), float(radius)
         self.bound = BarrierBound(packed, kappa, radius)
         self.params = Params(kappa=kappa, radius=radius)
         if bounds is None:
-            lo, hi = cover_bounds(packed)
+            lo, hi = self._cover_bounds(cache)
         else:
-            lo, hi = (np.asarray(b, np.float64) for b in bounds)
+            lo, hi = (np.asarray(b, np.float64).reshape(3) for b in bounds)
             if not np.all(hi > lo):
                 raise PolyccError(f"map bounds {_fmt(lo)} .. {_fmt(hi)} are empty; give x0,y0,z0,x1,y1,z1 with x0 < x1")
-        shape = tuple(int(v) for v in np.maximum(np.ceil((hi - lo) / spacing - 1e-9), 1))
-        cells = int(np.prod(shape))
-        if cells > 60_000_000:
-            raise PolyccError(f"the map {_fmt(lo)} .. {_fmt(hi)} at {spacing:g} m is {cells:,} cells; use a coarser "
-                              "grid or smaller bounds")
-        self.lo, self.hi = lo, lo + spacing * np.asarray(shape)
-        grid = Grid(lo, spacing, shape, np.zeros(0, np.float32), margin, 0.0)
-        e = field_reach(self.bound, grid.need)
-        key = hashlib.sha256(packed.to_bytes() + json.dumps(
-            [self.kappa, self.radius, margin, spacing, lo.tolist(), shape, e, 1]).encode()).hexdigest()[:20]
-        path = None
-        if cache:
-            from polycc import resources
-            path = resources.cache_dir("plan") / f"field_{key}.npy"
-        if path is not None and path.is_file():
-            grid.field = np.load(path)
-            self.cached = True
-        else:
-            if progress:
-                progress("field", 0, 1)
-            grid.field = lower_field(self.bound, lo, spacing, shape, e)
-            self.cached = False
-            if path is not None:
-                tmp = path.with_suffix(f".{time.time_ns()}.tmp.npy")
-                np.save(tmp, grid.field)
-                tmp.replace(path)
-        grid.cap = e - self.bound.radius
-        self.grid = grid
-        self._free = np.ascontiguousarray(grid.free, np.uint8)
-        self.build_s = time.perf_counter() - t0
+        self.lo, self.hi = lo, hi
 
     @classmethod
-    def from_build(cls, build_dir: str | Path, **kw) -> "NavMap":
+    def from_build(cls, build_dir: str | Path, **kw):
         packed, kappa, _ = load_build(build_dir)
         return cls(packed, kappa, **kw)
 
-    # ------------------------------------------------------------------ checks
+    def _cover_bounds(self, cache: bool) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`cover_bounds`, cached by the scene bytes (qhull on every polytope takes ~1 s)."""
+        path = None
+        if cache:
+            from polycc import resources
+            key = hashlib.sha256(self.packed.to_bytes()).hexdigest()[:20]
+            path = resources.cache_dir("plan") / f"bounds_{key}.json"
+            if path.is_file():
+                try:
+                    d = json.loads(path.read_text())
+                    return np.asarray(d["lo"], np.float64), np.asarray(d["hi"], np.float64)
+                except (ValueError, KeyError):
+                    pass
+        lo, hi = cover_bounds(self.packed)
+        if path is not None:
+            tmp = path.with_suffix(f".{time.time_ns()}.tmp")
+            tmp.write_text(json.dumps({"lo": lo.tolist(), "hi": hi.tolist()}))
+            tmp.replace(path)
+        return lo, hi
+
     def inside(self, p) -> bool:
         p = np.asarray(p, np.float64)
         return bool(np.all(p >= self.lo) and np.all(p <= self.hi))
@@ -233,6 +219,66 @@ class NavMap:
                            f"certified lower bound is {lb:.3f} m (the soft-max bias near edges); move it "
                            f"{-lb + 0.01:.2f} m away")
 
+    def preflight(self, start, goal) -> None:
+        """Raise :class:`NoPathError` if start or goal is outside the map or not certified free."""
+        for p, which in ((start, "start"), (goal, "goal")):
+            prob = self.endpoint_problem(p, which)
+            if prob is not None:
+                raise prob
+
+
+class NavMap(FreeSpace):
+    """The certified free space of one stored scene at one agent radius, and the planner on it.
+
+    The grid (``spacing`` m) covers the map box (rounded up to whole cells); its field is cached
+    in the build cache (``plan/``), keyed by the scene bytes and every setting.
+    """
+
+    def __init__(self, packed: PackedScene, kappa: float, radius: float = DEFAULT_RADIUS,
+                 margin: float = DEFAULT_MARGIN, spacing: float = DEFAULT_SPACING, bounds=None,
+                 cache: bool = True, progress=None):
+        if not (margin >= 0 and spacing > 0):
+            raise PolyccError(f"margin {margin:g} m must be >= 0 and the grid spacing {spacing:g} m > 0")
+        t0 = time.perf_counter()
+        super().__init__(packed, kappa, radius, bounds, cache)
+        self.margin, self.spacing = float(margin), float(spacing)
+        lo, hi = self.lo, self.hi
+        shape = tuple(int(v) for v in np.maximum(np.ceil((hi - lo) / spacing - 1e-9), 1))
+        cells = int(np.prod(shape))
+        if cells > 60_000_000:
+            raise PolyccError(f"the map {_fmt(lo)} .. {_fmt(hi)} at {spacing:g} m is {cells:,} cells; use a coarser "
+                              "grid or smaller bounds")
+        grid = Grid(lo, spacing, shape, np.zeros(0, np.float32), margin, 0.0)
+        e = field_reach(self.bound, grid.need)
+        key = hashlib.sha256(packed.to_bytes() + json.dumps(
+            [self.kappa, self.radius, margin, spacing, lo.tolist(), shape, e, 1]).encode()).hexdigest()[:20]
+        path = None
+        if cache:
+            from polycc import resources
+            path = resources.cache_dir("plan") / f"field_{key}.npy"
+        if path is not None and path.is_file():
+            grid.field = np.load(path)
+            self.cached = True
+        else:
+            if progress:
+                progress("field", 0, 1)
+            grid.field = lower_field(self.bound, lo, spacing, shape, e)
+            self.cached = False
+            if path is not None:
+                tmp = path.with_suffix(f".{time.time_ns()}.tmp.npy")
+                np.save(tmp, grid.field)
+                tmp.replace(path)
+        grid.cap = e - self.bound.radius
+        self.grid = grid
+        free = grid.free
+        for a in range(3):  # cells whose centre is outside the map are not planned through
+            c = lo[a] + (np.arange(shape[a]) + 0.5) * spacing
+            sl = [None, None, None]
+            sl[a] = slice(None)
+            free &= (c <= hi[a])[tuple(sl)]
+        self._free = np.ascontiguousarray(free, np.uint8)
+        self.build_s = time.perf_counter() - t0
+
     # ------------------------------------------------------------------ planning
     def _seg_ok(self, a, b, req: float) -> tuple[bool, float]:
         g = self.grid.segment_lower(a, b)
@@ -248,7 +294,7 @@ class NavMap:
             rng = np.arange(-rad, rad + 1)
             ijk = c0 + np.stack(np.meshgrid(rng, rng, rng, indexing="ij"), axis=-1).reshape(-1, 3)
             ijk = ijk[np.all((ijk >= 0) & (ijk < np.asarray(self.grid.shape)), axis=1)]
-            ijk = ijk[self.grid.free[ijk[:, 0], ijk[:, 1], ijk[:, 2]]]
+            ijk = ijk[self._free[ijk[:, 0], ijk[:, 1], ijk[:, 2]] != 0]
             if len(ijk) == 0:
                 continue
             cen = self.grid.centres(ijk)
@@ -262,7 +308,7 @@ class NavMap:
     def _no_path(self, src: np.ndarray, dst: np.ndarray) -> NoPathError:
         from scipy import ndimage
 
-        lab, _ = ndimage.label(self.grid.free, structure=np.ones((3, 3, 3), bool))
+        lab, _ = ndimage.label(self._free, structure=np.ones((3, 3, 3), bool))
         flat = lab.reshape(-1)
         cell = self.spacing**3
         counts = np.bincount(flat)
@@ -281,12 +327,11 @@ class NavMap:
         """A certified path from start to goal (m); :class:`NoPathError` names why there is none."""
         t0 = time.perf_counter()
         start, goal = np.asarray(start, np.float64).reshape(3), np.asarray(goal, np.float64).reshape(3)
-        for p, which in ((start, "start"), (goal, "goal")):
-            prob = self.endpoint_problem(p, which)
-            if prob is not None:
-                raise prob
+        self.preflight(start, goal)
         lb_s, lb_g = (float(v) for v in self.bound.lower(np.stack([start, goal])))
-        req_s, req_g = min(self.margin, lb_s), min(self.margin, lb_g)
+        # at an endpoint LB itself cannot be certified on a segment leaving it (LB is 1-Lipschitz):
+        # ask for a little less there (at most 5 mm, at most half of it)
+        req_s, req_g = (min(self.margin, lb - min(0.005, 0.5 * lb)) for lb in (lb_s, lb_g))
         straight = float(np.linalg.norm(goal - start))
         ok, _ = self._seg_ok(start, goal, min(req_s, req_g))
         expanded, grid_len = 0, straight
@@ -370,19 +415,31 @@ class NavMap:
                     straight, float(grid_len), int(expanded), dt, self.radius, self.margin, self.kappa, self.spacing,
                     meta={"map_lo_m": self.lo.tolist(), "map_hi_m": self.hi.tolist()})
 
-    def annotate(self, plan: Plan, step: float = 0.01) -> Plan:
-        """Fill ``plan.psi`` (reference psi at the waypoints) and ``plan.segment_psi_min`` (smallest
-        reference psi sampled every ``step`` m along each segment): what the drone will compute.
-        One batched call of the float32 reference (about 0.5 s per thousand polytopes)."""
+    def annotate(self, plan: Plan, step: float = 0.01, tight: float = 0.005) -> Plan:
+        """Fill ``plan.psi`` (reference psi at the waypoints), ``plan.segment_psi_min`` (smallest
+        reference psi sampled every ``step`` m along each segment) and ``plan.profile`` (arc length,
+        psi) m: what the drone will compute (one batched call of the float32 reference, about
+        0.5 s per thousand polytopes); and tighten ``plan.segment_lower`` to within ``tight`` m of
+        each segment's smallest LB (the planner only certifies ``>= margin``)."""
         way = plan.waypoints
-        pieces = [way]
+        for i, (a, b) in enumerate(zip(way[:-1], way[1:])):
+            chk = certify_segment(self.bound, a, b, min(0.0, float(plan.segment_lower[i])), tight=tight)
+            if chk.ok:
+                plan.segment_lower[i] = max(float(plan.segment_lower[i]), chk.lower)
+        pieces, arcs, s0 = [], [], 0.0
         for a, b in zip(way[:-1], way[1:]):
-            k = max(2, int(math.ceil(np.linalg.norm(b - a) / step)) + 1)
-            pieces.append(a + np.linspace(0, 1, k)[:, None] * (b - a))
+            L = float(np.linalg.norm(b - a))
+            t = np.linspace(0.0, 1.0, max(2, int(math.ceil(L / step)) + 1))
+            pieces.append(a + t[:, None] * (b - a))
+            arcs.append(s0 + t * L)
+            s0 += L
+        if not pieces:
+            pieces, arcs = [way], [np.zeros(len(way))]
         psi = self.psi(np.concatenate(pieces))
-        plan.psi = psi[: len(way)]
-        ends = np.cumsum([len(p) for p in pieces])
+        ends = np.r_[0, np.cumsum([len(p) for p in pieces])]
         plan.segment_psi_min = np.array([psi[ends[i]:ends[i + 1]].min() for i in range(len(way) - 1)])
+        plan.psi = np.r_[psi[ends[:-1]], psi[-1]][: len(way)]
+        plan.profile = (np.concatenate(arcs), psi)
         return plan
 
 
