@@ -320,8 +320,8 @@ class NavMap(FreeSpace):
         return NoPathError(f"{side}_enclosed",
                            f"no certified path: the {side} is enclosed -- its free region ({small:.2f} m^3) does not "
                            f"connect to the {other}'s ({big:.2f} m^3) with clearance radius {self.radius:g} m + margin "
-                           f"{self.margin:g} m; lower --margin, or rebuild with more polytopes (larger n) so the "
-                           "cover hugs the obstacles")
+                           f"{self.margin:g} m; if the obstacles really close it in, no flight reaches it, else lower "
+                           "--margin or rebuild with more polytopes (larger n) so the cover hugs the obstacles")
 
     def plan(self, start, goal) -> Plan:
         """A certified path from start to goal (m); :class:`NoPathError` names why there is none."""
