@@ -106,9 +106,10 @@ def run(args) -> int:
     except OSError as exc:
         raise PolyccError(f"{js}: cannot write the plan ({exc.strerror or exc}); pass --json FILE") from None
     png = Path(args.plot) if args.plot else out / "plan.png"
-    plot_plan(png, way, stored_vertices(nav.packed), None, plan.profile, plan.margin,
-              title=f"polycc plan: {len(way)} waypoints, {plan.length_m:.2f} m (straight {plan.straight_m:.2f} m), "
-                    f"r = {plan.radius:g} m, margin {plan.margin:g} m")
+    with console.status(f"drawing {png}"):
+        plot_plan(png, way, stored_vertices(nav.packed), None, plan.profile, plan.margin,
+                  title=f"polycc plan: {len(way)} waypoints, {plan.length_m:.2f} m (straight {plan.straight_m:.2f} m), "
+                        f"r = {plan.radius:g} m, margin {plan.margin:g} m")
     console.print(f"plan: {js}   views: {png}", soft_wrap=True)
     console.print(f"summary: {len(way)} waypoints, length {plan.length_m:.3f} m (straight {plan.straight_m:.3f} m, "
                   f"ratio {plan.length_ratio:.3f}; grid path {plan.grid_length_m:.3f} m), min certified psi "

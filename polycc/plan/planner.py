@@ -423,7 +423,8 @@ class NavMap(FreeSpace):
         each segment's smallest LB (the planner only certifies ``>= margin``)."""
         way = plan.waypoints
         for i, (a, b) in enumerate(zip(way[:-1], way[1:])):
-            chk = certify_segment(self.bound, a, b, min(0.0, float(plan.segment_lower[i])), tight=tight)
+            # far polytopes enter through a bound that caps LB near e - r: take e large enough to report
+            chk = certify_segment(self.bound, a, b, min(0.0, float(plan.segment_lower[i])), tight=tight, e=1.0)
             if chk.ok:
                 plan.segment_lower[i] = max(float(plan.segment_lower[i]), chk.lower)
         pieces, arcs, s0 = [], [], 0.0
