@@ -241,6 +241,8 @@ def main() -> int:
                  "waypoints": [p["waypoints"] for p in plans[a, n]["plans"]]} for a, n in cells for pl in (False, True)]
         for r in ex.map(fly_job, jobs):
             flights[r["arena"], r["n"], r["plan"]] = r
+            write_json("nav_partial", {"pairs": n_pairs, "flights": [  # progress, in case the run is cut short
+                {k: v for k, v in f.items()} for f in flights.values()]})
             ok = [f for f in r["flights"] if f is not None]
             print(f"fly {r['arena']} n={r['n']} plan={r['plan']}: success {sum(f['success'] for f in ok)}/{len(ok)}, "
                   f"collisions {sum(f['collisions'] for f in ok)} ({r['time_s']:.0f} s)", flush=True)
