@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import resource
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-SCENES = REPO.parent / "shared" / "scenes"
+# ../shared/scenes beside the checkout; POLYCC_SCENES overrides it (e.g. a git worktree elsewhere)
+SCENES = Path(os.environ.get("POLYCC_SCENES") or REPO.parent / "shared" / "scenes")
 RESULTS = REPO / "bench" / "results"
 CACHE = REPO / "build" / "bench-cache"
 

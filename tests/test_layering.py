@@ -17,12 +17,13 @@ PKG = ROOT / "polycc"
 RANK = {
     "errors": 0, "version": 0,
     "geometry": 1, "link": 1, "report": 1, "verify": 1, "resources": 1,
-    "scene": 2,
+    "scene": 2, "cbuild": 2,
     "occupancy": 3, "demo": 3,
     "cover": 4, "onboard": 4,
     "budget": 5,
     "codegen": 6,
     "pipeline": 7,
+    "plan": 7.5,  # planner on the certified free space: may import onboard, geometry, budget; the pipeline does not
     "sim": 8, "ground": 8,
     "testing": 9,
     "cli": 10, "polycc": 10, "__main__": 11,

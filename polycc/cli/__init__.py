@@ -21,6 +21,7 @@ COMMAND_MODULES = [
     "cover",
     "verify",
     "build",
+    "plan",
     "sim",
     "sim_device",
     "fly",

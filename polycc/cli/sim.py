@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from polycc.cli.argtypes import add_point_option, number
+from polycc.cli.plan import add_plan_options
 from polycc.cli.scene_args import (
     add_scene_options,
     check_scene_file,
@@ -77,6 +78,11 @@ def register(subparsers) -> None:
     p.add_argument("--t-max", type=number(float, 0.0, 1e5, lo_open=True, unit="s"), default=None, metavar="S",
                    help="time limit per flight, s (default: 2 * distance / vmax + 10)")
     p.add_argument("--plot", metavar="FILE.png", help="trajectory plot (default: OUT/trajectories.png)")
+    p.add_argument("--plan", action="store_true",
+                   help="plan each flight through the certified free space first (as `polycc plan`, at --radius) and "
+                        "fly its waypoints: the app's goal switches to the next waypoint within --margin of the "
+                        "current one. Pairs without a path are reported separately and not flown")
+    add_plan_options(p, with_radius=False)
     add_scene_options(p, from_dir=True)
     p.set_defaults(func=run)
 
@@ -149,11 +155,29 @@ def run(args) -> int:
         rng = np.random.default_rng(args.seed)
         pairs = [(start + (rng.uniform(-args.jitter, args.jitter, 3) if i else 0.0), goal) for i in range(args.trials)]
 
-    trials = []
-    with progress_bar(f"flying ({args.dynamics})", len(pairs)) as update:
-        for i, (s, g) in enumerate(pairs):
-            trials.append(sim.fly(s, g, args.dynamics, cfg, delay_s=delay))
-            update(i + 1)
+    plans, no_path = [None] * len(pairs), {}
+    if args.plan:
+        from polycc.cli.plan import NoPath, nav_map
+        from polycc.plan import NoPathError
+
+        nav = nav_map(out, args, args.radius)
+        cfg.switch_tol_m = args.margin
+        with progress_bar("planning", len(pairs)) as update:
+            for i, (s, g) in enumerate(pairs):
+                try:
+                    plans[i] = nav.plan(s, g)
+                except NoPathError as exc:
+                    if not args.random_pairs:
+                        raise NoPath(f"no path ({exc.reason}): {exc}") from None
+                    no_path[i] = exc
+                update(i + 1)
+    trials, flown = [], [i for i in range(len(pairs)) if i not in no_path]
+    with progress_bar(f"flying ({args.dynamics})", len(flown)) as update:
+        for n, i in enumerate(flown):
+            s, g = pairs[i]
+            trials.append(sim.fly(s, g, args.dynamics, cfg, delay_s=delay,
+                                  waypoints=None if plans[i] is None else plans[i].waypoints))
+            update(n + 1)
 
     table = Table(title=f"polycc sim: {args.dynamics}, {args.rate_hz} Hz, vmax {args.vmax:g} m/s, r = {args.radius:g} "
                         "m",
@@ -162,11 +186,19 @@ def run(args) -> int:
                   "splat ellipsoids minus r; ratio = path / straight line; evalUs = largest modelled kernel time")
     for h in ("#", "start", "goal", "result", "time s", "path m", "ratio", "clear m", "coll", "evalUs"):
         table.add_column(h, justify="right", overflow="fold", no_wrap=h not in ("start", "goal"))
-    for i, t in enumerate(trials):
-        table.add_row(str(i + 1), ",".join(f"{v:.1f}" for v in t.start), ",".join(f"{v:.1f}" for v in t.goal),
-                      "ok" if t.success else t.outcome, f"{t.time_s:.2f}", f"{t.path_length_m:.2f}",
+    by_pair = dict(zip(flown, trials))
+    for i, (s, g) in enumerate(pairs):
+        xyz = (",".join(f"{v:.1f}" for v in s), ",".join(f"{v:.1f}" for v in g))
+        if i in no_path:
+            table.add_row(str(i + 1), *xyz, f"no path ({no_path[i].reason})", "", "", "", "", "", "")
+            continue
+        t = by_pair[i]
+        table.add_row(str(i + 1), *xyz, "ok" if t.success else t.outcome, f"{t.time_s:.2f}", f"{t.path_length_m:.2f}",
                       f"{t.length_ratio:.3f}", f"{t.min_clearance_m:.4f}", str(t.collisions), str(t.max_eval_us))
     console.print(table)
+    if not trials:
+        raise PolyccError(f"none of the {len(pairs)} pairs has a certified path (e.g. {next(iter(no_path.values()))}); "
+                          "lower --margin or use another --seed")
     plot = Path(args.plot) if args.plot else out / "trajectories.png"
     plot_trajectories(plot, trials, stored_vertices(sim.packed), scene.ellipsoids,
                       title=f"polycc sim ({args.dynamics}): {Path(scene_path).name}, n = {sim.packed.n_polys} "
@@ -178,14 +210,26 @@ def run(args) -> int:
         "dynamics": args.dynamics, "rate_hz": args.rate_hz, "vmax": args.vmax, "radius": args.radius,
         "trials": [{"start": t.start.tolist(), "goal": t.goal.tolist(), "success": t.success, "outcome": t.outcome,
                     "time_s": t.time_s, "path_length_m": t.path_length_m, "length_ratio": t.length_ratio,
-                    "min_clearance_m": t.min_clearance_m, "collisions": t.collisions, "max_eval_us": t.max_eval_us}
-                   for t in trials],
+                    "min_clearance_m": t.min_clearance_m, "collisions": t.collisions, "max_eval_us": t.max_eval_us,
+                    **({} if plans[i] is None else {"plan": {
+                        "waypoints": plans[i].waypoints.tolist(), "length_m": plans[i].length_m,
+                        "waypoints_reached": t.reached}})}
+                   for i, t in zip(flown, trials)],
         "success_rate": n_ok / len(trials), "collisions": collisions, "min_clearance_m": min_clear,
     }
+    if args.plan:
+        summary["plan"] = {"margin_m": args.margin, "grid_m": args.grid, "switch_tolerance_m": args.margin,
+                           "no_path": [{"pair": i + 1, "start": pairs[i][0].tolist(), "goal": pairs[i][1].tolist(),
+                                        "reason": e.reason, "message": str(e)} for i, e in no_path.items()]}
     (out / "sim.json").write_text(json.dumps(summary, indent=1) + "\n")
     np.savez_compressed(out / "trajectories.npz", **{f"trial{i + 1}": t.positions for i, t in enumerate(trials)},
                         starts=np.array([t.start for t in trials]), goals=np.array([t.goal for t in trials]))
     console.print(f"trajectories: {plot}", soft_wrap=True)
+    if args.plan:
+        reasons = sorted({e.reason for e in no_path.values()})
+        console.print(f"planned: {len(pairs) - len(no_path)} of {len(pairs)} pairs have a certified path"
+                      + (f"; no path for {len(no_path)} ({', '.join(reasons)}), not flown" if no_path else ""),
+                      soft_wrap=True)
     console.print(f"summary: {len(trials)} trials, success {n_ok}/{len(trials)} ({100.0 * n_ok / len(trials):.0f}%), "
                   f"collisions: {collisions}, min clearance {min_clear:.4f} m, "
                   f"max evalUs {max(t.max_eval_us for t in trials)}, {time.perf_counter() - t0:.1f} s", soft_wrap=True)

@@ -9,6 +9,10 @@ One app tick at FreeRTOS tick ``k`` (1 ms):
      ``commanderSetSetpoint``) and returns its period ``P`` in ticks;
   4. the model flies the commander's velocity setpoint for ``P`` ms; the clock moves to ``k + P``.
 
+With ``waypoints`` (a plan, :mod:`polycc.plan`) the app flies to one goal param at a time:
+``polycc.goalX/Y/Z`` switch to the next waypoint once the vehicle is within ``switch_tol_m`` of the
+current one; success is still arrival within ``goal_tol_m`` of the last.
+
 Clearance is the EXACT Euclidean distance from the vehicle centre to the nearest ellipsoid
 minus the agent radius (:mod:`polycc.sim.clearance`), along the path resampled to at most
 ``SAMPLE_SPACING_M`` between points.
@@ -52,6 +56,7 @@ class FlightConfig:
     stuck_dist_m: float = 0.01
     record_app_io: bool = False  # keep what the app saw and sent, tick by tick
     floor_z: float = -1e3  # m: the floor the vehicle rests on (default: far below the scene)
+    switch_tol_m: float = 0.05  # waypoint following: next waypoint within this distance of the current one
 
     def params(self, kappa: float) -> Params:
         return Params(kappa=kappa, radius=self.radius, beta=self.beta, c_clf=self.clf_gain, v_max=self.vmax)
@@ -73,6 +78,8 @@ class Trial:
     collisions: int = -1
     io: dict | None = None  # record_app_io: per tick what the app saw, sent and gave/got from the kernel
     impact_speed_ms: float = 0.0  # fastest touchdown on the floor, m/s (0: none)
+    waypoints: np.ndarray | None = None  # the plan flown (k, 3) m, waypoints[0] = start, or None
+    reached: int = 0  # waypoints after the start the vehicle switched past or arrived at
 
     @property
     def length_ratio(self) -> float:
@@ -91,15 +98,31 @@ class Simulator:
         self.clearance = Clearance(ellipsoids) if ellipsoids is not None and len(ellipsoids) else None
 
     def fly(self, start, goal, dynamics: str = "integrator", cfg: FlightConfig | None = None,
-            delay_s: float | None = None) -> Trial:
+            delay_s: float | None = None, waypoints=None) -> Trial:
         """One flight from ``start`` (the vehicle hovering there under the high-level commander,
         as after a takeoff) with the app enabled towards ``goal``; every 1 ms tick runs the host
         model of the firmware's commander, high-level commander and supervisor
-        (``shim_stabilizer_step``) and flies the setpoint the controller gets."""
+        (``shim_stabilizer_step``) and flies the setpoint the controller gets.  ``waypoints`` (k, 3),
+        if given, is a plan with ``waypoints[-1] = goal`` (``waypoints[0]``, the start, is skipped
+        when it is ``start``)."""
         cfg = cfg or FlightConfig()
         app, lib, ffi = self.app, self.app.lib, self.app.ffi
         start = np.asarray(start, np.float64)
         goal = np.asarray(goal, np.float64)
+        if waypoints is None:
+            targets = goal[None]
+        else:
+            targets = np.asarray(waypoints, np.float64).reshape(-1, 3)
+            if not np.allclose(targets[-1], goal):
+                raise PolyccError("the plan's last waypoint is not the goal; plan again for this goal")
+            if len(targets) > 1 and np.allclose(targets[0], start):
+                targets = targets[1:]
+        current = 0
+
+        def set_goal(w):
+            for name, val in zip(("goalX", "goalY", "goalZ"), w):
+                app.set_param("polycc", name, val)
+
         veh = Vehicle(make_dynamics(dynamics, delay_s), floor_z=cfg.floor_z)
         veh.reset(start)
         app.reset()
@@ -108,13 +131,14 @@ class Simulator:
         lib.shim_hl_hover_at(*(float(v) for v in start))  # hovering under the HL commander, as after a takeoff
         pos32 = ffi.new("float[3]")
         vel32 = ffi.new("float[3]")
-        for name, val in (("goalX", goal[0]), ("goalY", goal[1]), ("goalZ", goal[2]), ("vmax", cfg.vmax),
-                          ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),
+        set_goal(targets[0])
+        for name, val in (("vmax", cfg.vmax), ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),
                           ("rateHz", cfg.rate_hz), ("enable", 1)):
             app.set_param("polycc", name, val)
         goal32 = goal.astype(np.float32)
         straight = float(np.linalg.norm(goal - start))
-        t_max = cfg.t_max_s if cfg.t_max_s is not None else 2.0 * straight / cfg.vmax + 10.0
+        planned = float(np.sum(np.linalg.norm(np.diff(np.vstack([start, targets]), axis=0), axis=1)))
+        t_max = cfg.t_max_s if cfg.t_max_s is not None else 2.0 * planned / cfg.vmax + 10.0 + 4.0 * (len(targets) - 1)
         i_psi = app._log_index["polycc.psi"]
         i_status = app._log_index["polycc.status"]
         params = cfg.params(self.kappa)
@@ -125,7 +149,7 @@ class Simulator:
         times = [0.0]
         statuses: dict[int, int] = {}
         io = ({k: [] for k in ("x_seen", "u", "psi", "status", "calls", "x_kernel", "vmax", "out_u", "out_psi",
-                                "out_flags")} if cfg.record_app_io else None)
+                                "out_flags", "goal_t")} if cfg.record_app_io else None)
         outcome = "timeout"
         stuck_ticks = None
         tick, next_app, period = 1, 1, 1
@@ -156,6 +180,7 @@ class Simulator:
                     io["out_u"].append(tuple(tr.out.u))
                     io["out_psi"].append(tr.out.psi)
                     io["out_flags"].append(tr.out.flags)
+                    io["goal_t"].append(targets[min(current, len(targets) - 1)])
             pos32[0:3] = veh.p.tolist()
             vel32[0:3] = veh.v.tolist()
             lib.shim_stabilizer_step(pos32, vel32, 0.0, sp)
@@ -167,7 +192,11 @@ class Simulator:
             tick += 1
             if np.linalg.norm(veh.p - goal) <= cfg.goal_tol_m:
                 outcome = "goal"
+                current = len(targets)
                 break
+            while current < len(targets) - 1 and np.linalg.norm(veh.p - targets[current]) <= cfg.switch_tol_m:
+                current += 1
+                set_goal(targets[current])
             if t >= t_max:
                 break
             if stuck_ticks is None:
@@ -179,13 +208,16 @@ class Simulator:
         P = np.asarray(positions)
         max_eval = int(cycle_model.us(cycle_model.state_cycles(self.packed, params, np.asarray(seen))).max())
         trial = Trial(start, goal, outcome == "goal", outcome, times[-1],
-                      float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))), straight, P, max_eval, statuses)
+                      float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))), straight, P, max_eval, statuses,
+                      waypoints=None if waypoints is None else np.asarray(waypoints, np.float64).reshape(-1, 3),
+                      reached=current)
         trial.impact_speed_ms = veh.impact_speed_ms
         if io is not None:
             f3 = lambda k: np.asarray(io[k], np.float32).reshape(-1, 3)  # noqa: E731
             trial.io = {"x_seen": f3("x_seen"), "u": f3("u"),
                         "psi": np.asarray(io["psi"], np.float64).astype(np.float32),
-                        "status": np.asarray(io["status"], np.int64), "goal": goal32,
+                        "status": np.asarray(io["status"], np.int64),
+                        "goal": goal32 if waypoints is None else f3("goal_t"),
                         "calls": np.asarray(io["calls"], np.int64), "x_kernel": f3("x_kernel"),
                         "vmax": np.asarray(io["vmax"], np.float32), "out_u": f3("out_u"),
                         "out_psi": np.asarray(io["out_psi"], np.float32),
