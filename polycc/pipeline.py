@@ -24,6 +24,7 @@ from polycc.errors import PolyccError
 from polycc.occupancy.exact import voxelize
 from polycc.occupancy.floaters import floater_loss, floater_text, loss_record
 from polycc.occupancy.grid import OccupancyGrid
+from polycc.occupancy.triangles import merge_triangles
 from polycc.onboard.layout import stored_vertices
 from polycc.report.plots import write_report
 from polycc.scene.load import Scene, load_scene
@@ -81,6 +82,10 @@ def occupancy(scene: Scene, settings: SceneSettings, progress: Progress | None =
     t = time.perf_counter()
     occ = voxelize(scene.ellipsoids, settings.voxel, settings.min_splats_per_voxel,
                    progress=(lambda done: progress("voxelize", done, n)) if progress else None)
+    if scene.triangles is not None and len(scene.triangles):
+        nt = len(scene.triangles)
+        occ = merge_triangles(occ, scene.triangles,
+                              progress=(lambda done: progress("triangles", done, nt)) if progress else None)
     occ.stats["time_s"] = time.perf_counter() - t
     if settings.min_splats_per_voxel > 1 and occ.removed is not None and len(occ.removed):
         if progress:

@@ -43,7 +43,8 @@ def summary_table(title: str, rows: list[tuple[str, str]]) -> Table:
 
 
 STAGE_TEXT = {
-    "read": "reading the scene", "voxelize": "voxelizing", "floaters": "floater filter: what it leaves uncovered",
+    "read": "reading the scene", "voxelize": "voxelizing", "triangles": "voxelizing the mesh triangles",
+    "floaters": "floater filter: what it leaves uncovered",
     "cover": "cover: clusters, set cover, merging", "budget": "budget: reduce, quantize, measure candidates",
     "write": "writing polytopes.h, manifest.json, report.png",
     "certificate": "(a) certificate, every level", "levels": "(a)(b)(c) direct checks",

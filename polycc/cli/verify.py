@@ -89,10 +89,18 @@ def run(args: argparse.Namespace) -> int:
     else:
         console.print(f"certifying against the exact occupancy of {args.scene} (g = {grid.voxel_size:g} m, "
                       "no floater filter): every kept splat ellipsoid must be inside the cover", soft_wrap=True)
+    centers, axes = ell.centers, ell.axes()
+    if scene.triangles is not None and len(scene.triangles):  # a mesh: points on every triangle must be covered too
+        from polycc.occupancy.triangles import triangle_samples
+
+        pts = triangle_samples(scene.triangles)
+        centers, axes = np.concatenate([centers, pts]), np.concatenate([axes, np.zeros((len(pts), 3, 3))])
+        console.print(f"and {len(pts):,} points on the {len(scene.triangles):,} mesh triangles (corners, edge "
+                      "midpoints, centroids, random)", soft_wrap=True)
     levels = None if args.levels == "default" else _levels(args.levels)
     t0 = time.perf_counter()
     with StageProgress() as progress:
-        rep = verify(path, ell.centers, ell.axes(), grid.indices, grid.voxel_size, grid.origin,
+        rep = verify(path, centers, axes, grid.indices, grid.voxel_size, grid.origin,
                      levels=levels, all_levels_certificate=args.all_levels_certificate,
                      samples_per_ellipsoid=args.samples_per_ellipsoid, min_samples=args.min_samples,
                      mc_samples=args.mc_samples, seed=args.seed, progress=progress)

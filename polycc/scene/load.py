@@ -16,6 +16,7 @@ import numpy as np
 from polycc.errors import PolyccError
 from polycc.geometry.ellipsoid_box import boxes_intersect
 from polycc.scene.ellipsoids import SIGMA_FLOOR_M, Ellipsoids, quaternion_to_rotation
+from polycc.scene.quantized import inflated_sigmas
 from polycc.scene.readers import read_splats
 from polycc.scene.transform import apply_transform, check_transform, scale_matrix
 
@@ -56,9 +57,13 @@ class SceneStats:
     invalid: int = 0
     invalid_nonfinite: int = 0
     invalid_quaternion: int = 0
+    invalid_saturated: int = 0
     filtered_opacity: int = 0
     cropped: int = 0
+    triangles: int = 0
+    triangles_cropped: int = 0
     sigma_floored: int = 0
+    quantized_inflated: int = 0
     kept: int = 0
 
     def as_dict(self) -> dict:
@@ -72,6 +77,8 @@ class Scene:
     options: SceneOptions
     stats: SceneStats = field(default_factory=SceneStats)
     sha256: str = ""
+    info: dict = field(default_factory=dict)  # format details from the reader (format, version, quantization)
+    triangles: np.ndarray | None = None  # (T, 3, 3) mesh triangles, world frame, metres (mesh .ply only)
 
 
 def file_sha256(path: Path) -> str:
@@ -116,9 +123,15 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
     else:
         qn = None
         bad_q = np.zeros(stats.read, bool)
+    if raw.bounds is not None:  # a saturated size code: the true splat may be any size
+        finite &= np.isfinite(raw.bounds.pos_err).all(axis=1) & np.isfinite(raw.bounds.quat_err)
+        bad_sat = finite & ~bad_q & raw.bounds.saturated()
+    else:
+        bad_sat = np.zeros(stats.read, bool)
     stats.invalid_nonfinite = int((~finite).sum())
     stats.invalid_quaternion = int(bad_q.sum())
-    valid = finite & ~bad_q
+    stats.invalid_saturated = int(bad_sat.sum())
+    valid = finite & ~bad_q & ~bad_sat
     stats.invalid = stats.read - int(valid.sum())
     if stats.invalid and not opts.drop_invalid:
         parts = []
@@ -126,6 +139,9 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
             parts.append(f"{stats.invalid_nonfinite} splats with NaN/Inf values")
         if stats.invalid_quaternion:
             parts.append(f"{stats.invalid_quaternion} with a zero-length rotation quaternion")
+        if stats.invalid_saturated:
+            parts.append(f"{stats.invalid_saturated} whose size code is saturated at the format's maximum (the true "
+                         "size is unbounded; re-export from the original .ply to keep them)")
         raise PolyccError(
             f"{path}: {' and '.join(parts)} (of {stats.read}); pass --drop-invalid to skip them, or fix the export"
         )
@@ -138,6 +154,11 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
     else:
         q = raw.quats[valid] / qn[valid, None]
         R = quaternion_to_rotation(q)
+        if raw.bounds is not None:  # quantized file: hold every splat the stored bits allow
+            sig = inflated_sigmas(raw.bounds.subset(valid), float(opts.sigma))
+            stats.quantized_inflated = int(len(sig))
+    op_hi = (raw.opacity[valid].astype(np.float64) if raw.bounds is None
+             else np.maximum(raw.bounds.opacity_hi[valid], raw.opacity[valid]))
     ell = Ellipsoids(
         centers=raw.positions[valid],
         rotations=R,
@@ -149,14 +170,20 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
     T = opts.world_matrix()
     if not np.array_equal(T, np.eye(4)):
         ell = apply_transform(ell, T)
+    tris = None
+    if raw.triangles is not None:
+        tris = np.asarray(raw.triangles, np.float64) @ T[:3, :3].T + T[:3, 3]
+        stats.triangles = int(len(tris))
+        if not np.isfinite(tris).all():
+            raise PolyccError(f"{path}: the mesh has NaN/Inf vertex coordinates; repair the mesh")
     small = ell.sigmas < SIGMA_FLOOR_M
     stats.sigma_floored = int(small.any(axis=1).sum())
     if stats.sigma_floored:
         ell.sigmas = np.maximum(ell.sigmas, SIGMA_FLOOR_M)
 
     # -- opacity filter
-    if opts.min_opacity > 0:
-        keep = ell.opacity >= opts.min_opacity
+    if opts.min_opacity > 0:  # outward for quantized alpha: drop only if even its upper bound is below
+        keep = op_hi >= opts.min_opacity
         stats.filtered_opacity = int((~keep).sum())
         ell = ell.subset(keep)
 
@@ -167,6 +194,10 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
         keep = crop_mask(ell, lo, hi)
         stats.cropped = int((~keep).sum())
         ell = ell.subset(keep)
+        if tris is not None:  # keep every triangle whose box meets the crop box (straddling ones whole)
+            tk = np.all((tris.min(axis=1) <= hi) & (tris.max(axis=1) >= lo), axis=1)
+            stats.triangles_cropped = int((~tk).sum())
+            tris = tris[tk]
 
     stats.kept = len(ell)
     if stats.kept == 0:
@@ -181,7 +212,8 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
             f"{path}: zero splats left after filtering ({', '.join(why)} of {stats.read} read); "
             "lower --min-opacity or widen --crop (the crop box is in metres, after --transform/--scale)"
         )
-    return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=file_sha256(path))
+    return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=file_sha256(path), info=dict(raw.info),
+                 triangles=tris)
 
 
 def crop_mask(ell: Ellipsoids, lo: np.ndarray, hi: np.ndarray, chunk: int = 200_000) -> np.ndarray:
