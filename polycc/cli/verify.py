@@ -31,7 +31,7 @@ def register(sub) -> None:
                     "in OUT without using the cover code: (a) all 8 corners of every occupied voxel inside one "
                     "polytope, at the listed levels directly and at every level n = N..1 by a merge certificate; "
                     "(b) points sampled on and inside every kept ellipsoid inside some polytope; (c) Monte Carlo "
-                    "conservativeness Vol(U H^n)/Vol(V+) with a 95 %% confidence interval. Tolerances count against "
+                    "conservativeness Vol(U H^n)/Vol(V+) with a 95 % confidence interval. Tolerances count against "
                     "the cover. The scene options default to the ones OUT was made with (an explicit option that "
                     "disagrees is an error). With a floater filter (--min-splats-per-voxel > 1) the cover is "
                     "certified against the FILTERED occupancy: the splats that touch removed voxels are listed and "
@@ -89,6 +89,11 @@ def run(args: argparse.Namespace) -> int:
     else:
         console.print(f"certifying against the exact occupancy of {args.scene} (g = {grid.voxel_size:g} m, "
                       "no floater filter): every kept splat ellipsoid must be inside the cover", soft_wrap=True)
+    if scene.stats.dropped_isolated:
+        r, m = st.drop_isolated
+        console.print(f"the splat-level floater filter (--drop-isolated {r:g},{m}) dropped "
+                      f"{scene.stats.dropped_isolated:,} splats in {len(scene.dropped_groups):,} groups, as the "
+                      "build did: certifying against the kept splats", soft_wrap=True)
     centers, axes = ell.centers, ell.axes()
     if scene.triangles is not None and len(scene.triangles):  # a mesh: points on every triangle must be covered too
         from polycc.occupancy.triangles import triangle_samples
@@ -118,8 +123,8 @@ def run(args: argparse.Namespace) -> int:
 
     t = Table(title=f"polycc verify: {path}", header_style="bold")
     for h in ("n", "half-planes", "voxels checked", "uncovered voxels", "points sampled", "uncovered points",
-              "conservativeness (95% CI)"):
-        t.add_column(h, justify="right")
+              "conservativeness (95 % CI)"):
+        t.add_column(h, justify="right", overflow="fold")
     for l in rep.levels:
         t.add_row(str(l.n), f"{l.halfplanes:,}", f"{l.voxels_checked:,}", str(l.voxels_uncovered),
                   f"{l.points_sampled:,}", str(l.points_uncovered),
@@ -141,5 +146,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"verify: {'PASS' if rep.ok else 'FAIL'} against the {occ_text} | levels checked directly {len(rep.levels)}, "
           "by certificate "
           f"{rep.certificate_levels} | voxels checked {vox:,} | points sampled {pts:,} | uncovered voxels {unv:,} "
-          f"points {unp:,} | conservativeness (95% CI) {cons}")
+          f"points {unp:,} | conservativeness (95 % CI) {cons}")
     return 0 if rep.ok else 1

@@ -35,6 +35,10 @@ class SceneOptions:
     crop:         (xmin, ymin, zmin, xmax, ymax, zmax) metres, world frame; keeps every
                   ellipsoid that meets the box, including those that straddle its boundary.
     drop_invalid: skip NaN/Inf splats and degenerate quaternions instead of refusing.
+    drop_isolated: (R metres, N splats) or None: the splat-level floater filter, drop every group of
+                  fewer than N splats whose centres (binned in cells of side R, world frame) touch no
+                  other group (:func:`polycc.scene.survey.splat_groups`); the cover is then certified
+                  against the kept splats and the dropped groups are listed.
     """
 
     sigma: float = 1.0
@@ -43,6 +47,7 @@ class SceneOptions:
     scale: float | None = None
     crop: tuple[float, float, float, float, float, float] | None = None
     drop_invalid: bool = False
+    drop_isolated: tuple[float, int] | None = None
 
     def world_matrix(self) -> np.ndarray:
         T = np.eye(4) if self.transform is None else np.asarray(self.transform, np.float64)
@@ -61,6 +66,7 @@ class SceneStats:
     filtered_opacity: int = 0
     cropped: int = 0
     triangles: int = 0
+    dropped_isolated: int = 0
     triangles_cropped: int = 0
     sigma_floored: int = 0
     quantized_inflated: int = 0
@@ -79,6 +85,7 @@ class Scene:
     sha256: str = ""
     info: dict = field(default_factory=dict)  # format details from the reader (format, version, quantization)
     triangles: np.ndarray | None = None  # (T, 3, 3) mesh triangles, world frame, metres (mesh .ply only)
+    dropped_groups: list = field(default_factory=list)  # splat-level floater filter: survey.Group of each
 
 
 def file_sha256(path: Path) -> str:
@@ -199,6 +206,20 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
             stats.triangles_cropped = int((~tk).sum())
             tris = tris[tk]
 
+    dropped_groups = []
+    if opts.drop_isolated is not None and len(ell):
+        from polycc.scene.survey import isolated_groups, splat_groups
+
+        radius, min_n = float(opts.drop_isolated[0]), int(opts.drop_isolated[1])
+        groups = splat_groups(ell.centers, radius)
+        small = groups.sizes < min_n
+        small[0] = False  # never the main body
+        drop = small[groups.labels]
+        if drop.any():
+            dropped_groups = isolated_groups(ell.centers, groups, min_n, top=len(groups.sizes))
+            stats.dropped_isolated = int(drop.sum())
+            ell = ell.subset(~drop)
+
     stats.kept = len(ell)
     if stats.kept == 0:
         why = []
@@ -213,7 +234,7 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
             "lower --min-opacity or widen --crop (the crop box is in metres, after --transform/--scale)"
         )
     return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=file_sha256(path), info=dict(raw.info),
-                 triangles=tris)
+                 triangles=tris, dropped_groups=dropped_groups)
 
 
 def crop_mask(ell: Ellipsoids, lo: np.ndarray, hi: np.ndarray, chunk: int = 200_000) -> np.ndarray:
@@ -240,6 +261,10 @@ def _check_options(opts: SceneOptions) -> None:
         raise PolyccError(f"--scale {opts.scale}: must be a positive factor (file units to metres)")
     if opts.transform is not None:
         check_transform(np.asarray(opts.transform, np.float64), "--transform")
+    if opts.drop_isolated is not None:
+        r, n = opts.drop_isolated
+        if not (np.isfinite(r) and r > 0 and int(n) >= 2):
+            raise PolyccError(f"--drop-isolated {r:g},{n}: give a cell side R > 0 metres and a group size N >= 2")
     if opts.crop is not None:
         c = np.asarray(opts.crop, np.float64)
         if c.shape != (6,) or not np.all(np.isfinite(c)) or np.any(c[:3] >= c[3:]):
