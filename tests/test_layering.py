@@ -23,7 +23,7 @@ RANK = {
     "budget": 5,
     "codegen": 6,
     "pipeline": 7,
-    "sim": 8, "ground": 8,
+    "sim": 8, "ground": 8, "view": 8,
     "testing": 9,
     "cli": 10, "polycc": 10, "__main__": 11,
 }

@@ -19,6 +19,8 @@ COMMAND_MODULES = [
     "demo_scene",
     "info",
     "align",
+    "export",
+    "view",
     "voxelize",
     "cover",
     "verify",
