@@ -59,8 +59,19 @@ def plot_trajectories(path: str | Path, trials: list, polytope_vertices: list[np
         ax.set_ylabel(f"{labels[j + 1]} (m)")
         ax.set_aspect("equal", adjustable="datalim")
         ax.autoscale_view()
-    fig.suptitle(title or "polycc SITL: green = reached goal, orange = stuck/timeout, red = collision")
-    fig.tight_layout()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    handles = [Line2D([], [], color="tab:green", lw=2, label="reached the goal"),
+               Line2D([], [], color="tab:orange", lw=2, label="stuck / timeout"),
+               Line2D([], [], color="tab:red", lw=2, label="collision"),
+               Line2D([], [], marker="o", color="k", ls="", markersize=5, label="start"),
+               Line2D([], [], marker="*", color="k", ls="", markersize=9, label="goal"),
+               Patch(facecolor="tab:blue", alpha=0.25, edgecolor="tab:blue", label="stored polytopes"),
+               Line2D([], [], marker=".", color="0.4", ls="", label="splat centres")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=11)
+    fig.suptitle(title or "polycc SITL flights")
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
