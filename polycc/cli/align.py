@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.cli.argtypes import NEGATIVE_VALUE_OPTIONS, number, numbers
+from polycc.cli.argtypes import NEGATIVE_CHOICE_OPTIONS, NEGATIVE_VALUE_OPTIONS, number, numbers
 from polycc.cli.console import console, warn
 from polycc.cli.scene_args import add_scene_options, load_scene_from_args, print_summary, resolve_scene_settings
 from polycc.errors import PolyccError
@@ -31,6 +31,7 @@ def register(sub) -> None:
                    help="the scene's up direction: auto = the floor plane's normal toward the splats, or an axis "
                         "of the scene as read (a y-down capture: -y); with an axis, a floor plane within 20 deg of "
                         "it is used when found (default: %(default)s)")
+    NEGATIVE_CHOICE_OPTIONS["--up"] = set(AXES)
     s = p.add_mutually_exclusive_group()
     s.add_argument("--size", type=number(float, 0.0, lo_open=True, unit="m"), metavar="L",
                    help="scale so that the longest side of the robust bounds (0.5-99.5 %% of the centres) is L "
