@@ -208,15 +208,10 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
 
     dropped_groups = []
     if opts.drop_isolated is not None and len(ell):
-        from polycc.scene.survey import isolated_groups, splat_groups
+        from polycc.scene.survey import isolated_mask
 
-        radius, min_n = float(opts.drop_isolated[0]), int(opts.drop_isolated[1])
-        groups = splat_groups(ell.centers, radius)
-        small = groups.sizes < min_n
-        small[0] = False  # never the main body
-        drop = small[groups.labels]
+        drop, dropped_groups = isolated_mask(ell.centers, float(opts.drop_isolated[0]), int(opts.drop_isolated[1]))
         if drop.any():
-            dropped_groups = isolated_groups(ell.centers, groups, min_n, top=len(groups.sizes))
             stats.dropped_isolated = int(drop.sum())
             ell = ell.subset(~drop)
 

@@ -116,6 +116,16 @@ def isolated_groups(centers: np.ndarray, groups: Groups, max_splats: int, top: i
     return out
 
 
+def isolated_mask(centers: np.ndarray, radius: float, min_splats: int) -> tuple[np.ndarray, list[Group]]:
+    """The splat-level floater filter: (N,) bool of the splats in groups of fewer than ``min_splats`` (never
+    the main body), and those groups (farthest first)."""
+    groups = splat_groups(centers, radius)
+    small = groups.sizes < min_splats
+    small[0] = False
+    drop = small[groups.labels]
+    return drop, (isolated_groups(centers, groups, min_splats, top=len(groups.sizes)) if drop.any() else [])
+
+
 @dataclass
 class Floor:
     """A detected floor: unit ``up`` normal (pointing to the splats), ``height`` = up . p on the plane,
