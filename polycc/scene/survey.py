@@ -21,6 +21,7 @@ import numpy as np
 ROBUST_PCT = (0.5, 99.5)
 METRIC_MAX_M = 20.0  # a robust extent above this is not a room in metres
 METRIC_MIN_M = 0.2  # ... below this is not a flight volume in metres
+FLOOR_MAX_BELOW = 0.02  # a plane with more of the splats below it is not the floor
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 _NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
                         if (i, j, k) > (0, 0, 0)], np.int64)  # 13 forward offsets
@@ -241,7 +242,16 @@ def align(centers: np.ndarray, up: str = "auto", size: float | None = None,
     R = rotation_to_z(fl.up)
     q = centers @ R.T
     lo, hi = robust_bounds(q)
-    t = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), fl.height])
+    # A plane with splats below it (a table top, the soil in a pot) is not the floor: then the floor is
+    # the lowest of the splats (the robust low percentile along up).
+    below = float(np.mean(q[:, 2] < fl.height - fl.tol))
+    floor_z = fl.height
+    if below > FLOOR_MAX_BELOW:
+        floor_z = float(lo[2])
+        fl.notes.append(f"{100 * below:.0f} % of the splats lie below the largest plane: floor = the lowest splats")
+        fl.method += f"; {100 * below:.0f} % below it, so the floor is the lowest splats ({ROBUST_PCT[0]} %)"
+        fl.height = floor_z
+    t = -np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), floor_z])
     s, src = 1.0, "none (units kept)"
     if known is not None:
         p1, p2, dist = known
