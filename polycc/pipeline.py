@@ -130,7 +130,7 @@ def build(scene_path: str | Path, out: str | Path, settings: SceneSettings | Non
 
     Parameters
     ----------
-    scene_path : path of a 3DGS .ply, point-cloud .ply or .splat file.
+    scene_path : a scene file: 3DGS .ply, .compressed.ply, .splat, .spz, point-cloud or mesh .ply.
     out : output folder (created): ``polytopes.h``, ``manifest.json``, ``scene.bin``, ``cover.npz``,
         ``report.png``.
     settings : scene and occupancy options (default: :class:`SceneSettings` defaults: sigma 1,

@@ -30,7 +30,7 @@ def register(sub) -> None:
                     "OUT/polytopes.h, OUT/manifest.json, OUT/scene.bin (the same bytes as the header's arrays), "
                     "OUT/cover.npz and OUT/report.png. Every stored polytope contains its exact one.",
     )
-    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply or .splat file")
+    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, .compressed.ply, .splat, .spz, point-cloud or mesh .ply")
     p.add_argument("-o", "--output", default="out", metavar="OUT", help="output folder (default: %(default)s)")
     p.add_argument("--flash-kb", type=number(float, 0.0, FLASH_KB_MAX, lo_open=True, unit="KiB"), default=64.0,
                    metavar="N",

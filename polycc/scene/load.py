@@ -101,8 +101,8 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
 
     Parameters
     ----------
-    path : a 3DGS .ply (graphdeco layout, any property order), a point-cloud .ply (x y z
-        [radius]) or an antimatter15 .splat file.
+    path : a 3DGS .ply (graphdeco layout, any property order), SuperSplat .compressed.ply, Niantic .spz,
+        a mesh .ply, a point-cloud .ply (x y z [radius]) or an antimatter15 .splat file.
     opts : sigma (the k-sigma ellipsoid), opacity filter, 4x4 trainer-frame -> world transform
         (metres), uniform scale, crop box (metres, world frame), whether to drop invalid splats.
 

@@ -92,19 +92,23 @@ def start(content: ViewContent, host: str = "127.0.0.1", port: int = 8080, max_s
     server.scene.set_up_direction("+z")
     server.gui.configure_theme(control_width="large")
     n_shown = None
-    if content.ellipsoids is not None and len(content.ellipsoids):
+    if content.ellipsoids is not None and len(content.ellipsoids) and max_splats > 0:
         c, cov, rgb, op = splat_arrays(content.ellipsoids, max_splats)
         n_shown = len(c)
         splats = server.scene.add_gaussian_splats("/splats", centers=c, covariances=cov, rgbs=rgb, opacities=op)
     else:
         splats = None
     meshes = polytope_meshes(content.manifest, "world")
-    cover = None
-    if meshes:
-        m = trimesh.util.concatenate(meshes)
-        cover = server.scene.add_mesh_trimesh("/cover", m)
-        edges = server.scene.add_mesh_simple("/cover_edges", m.vertices, m.faces, wireframe=True,
-                                             color=(40, 40, 40), opacity=0.5)
+    cover = []
+    if meshes:  # one mesh per colour (tab20, polytope i gets colour i % 20), each one flat colour
+        for k in range(min(20, len(meshes))):
+            m = trimesh.util.concatenate(meshes[k::20])
+            rgb = tuple(int(c) for c in np.asarray(m.visual.face_colors)[0, :3])
+            cover.append(server.scene.add_mesh_simple(f"/cover/{k}", m.vertices, m.faces, color=rgb, opacity=0.85,
+                                                      flat_shading=True, side="double"))
+        allm = trimesh.util.concatenate(meshes)
+        cover.append(server.scene.add_mesh_simple("/cover_edges", allm.vertices, allm.faces, wireframe=True,
+                                                  color=(40, 40, 40), opacity=0.4))
     lines = []
     for i, (p, s, g) in enumerate(content.flights):
         if len(p) >= 2:
@@ -118,12 +122,12 @@ def start(content: ViewContent, host: str = "127.0.0.1", port: int = 8080, max_s
     if splats is not None:
         cb = server.gui.add_checkbox("splats", True)
         cb.on_update(lambda _: setattr(splats, "visible", cb.value))
-    if cover is not None:
+    if cover:
         cc = server.gui.add_checkbox("cover (stored polytopes)", True)
 
         def _cover(_):
-            cover.visible = cc.value
-            edges.visible = cc.value
+            for h in cover:
+                h.visible = cc.value
 
         cc.on_update(_cover)
     if lines:
@@ -136,7 +140,7 @@ def start(content: ViewContent, host: str = "127.0.0.1", port: int = 8080, max_s
         fc.on_update(_flights)
     _frame_camera(server, content)
     server.polycc_layers = {"splats": [splats] if splats is not None else [],
-                            "cover": [cover, edges] if cover is not None else [], "flights": lines}
+                            "cover": cover, "flights": lines}
     return server
 
 
