@@ -23,7 +23,8 @@ def register(sub) -> None:
     p.add_argument("--format", choices=FORMATS, default=None,
                    help="mesh format (default: from OUT's extension, else glb)")
     p.add_argument("--frame", choices=FRAMES, default="world",
-                   help="world = metres, the build's frame; trainer = the scene file's own frame (default: %(default)s)")
+                   help="world = metres, the build's frame; trainer = the scene file's own frame "
+                        "(default: %(default)s)")
     p.set_defaults(func=run)
 
 
