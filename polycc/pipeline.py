@@ -21,15 +21,20 @@ from polycc.codegen.header import write_outputs
 from polycc.cover.build import DEFAULT_MERGE_COST, build_cover
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
+from polycc.occupancy.estimate import HUGE_SPLAT_VOXELS, estimate, size_error
 from polycc.occupancy.exact import voxelize
 from polycc.occupancy.floaters import floater_loss, floater_text, loss_record
 from polycc.occupancy.grid import OccupancyGrid
+from polycc.occupancy.triangles import merge_triangles
 from polycc.onboard.layout import stored_vertices
 from polycc.report.plots import write_report
 from polycc.scene.load import Scene, load_scene
 from polycc.scene.settings import SceneSettings
+from polycc.scene.survey import extent_warning, robust_bounds
 
 Progress = Callable[[str, float, float], None]
+Warn = Callable[[str], None]
+SLOW_VOXELS = 30_000_000  # warn (with the estimate) before voxelizing more than this
 
 
 @dataclass
@@ -65,22 +70,46 @@ class BuildResult:
     timings_s: dict = field(default_factory=dict)
 
 
-def read(scene_path: str | Path, settings: SceneSettings, progress: Progress | None = None) -> Scene:
-    """The scene with every scene option of ``settings`` applied."""
+def read(scene_path: str | Path, settings: SceneSettings, progress: Progress | None = None,
+         warn: Warn | None = None) -> Scene:
+    """The scene with every scene option of ``settings`` applied; ``warn`` gets a line when its extent
+    does not look metric (:func:`polycc.scene.survey.extent_warning`)."""
     if progress:
         progress("read", 0, 1)
     t = time.perf_counter()
     scene = load_scene(scene_path, settings.scene_options())
     scene.stats_time_s = time.perf_counter() - t
+    msg = extent_warning(*robust_bounds(scene.ellipsoids.centers))
+    if msg and warn:
+        warn(msg)
     return scene
 
 
-def occupancy(scene: Scene, settings: SceneSettings, progress: Progress | None = None) -> OccupancyGrid:
+def check_size(scene: Scene, voxel: float, warn: Warn | None = None) -> None:
+    """Before voxelizing: refuse a voxelization that cannot fit (one line, the fix), warn on a long one."""
+    est = estimate(scene.ellipsoids, voxel, timed=False)
+    err = size_error(est)
+    if err:
+        raise PolyccError(f"{scene.path}: {err}")
+    if warn and (est.voxels_at_most > SLOW_VOXELS or est.huge_splats):
+        big = (f"; {est.huge_splats:,} splats each span more than {HUGE_SPLAT_VOXELS:,} voxels (largest "
+               f"{est.largest_splat_voxels:.3g})" if est.huge_splats else "")
+        warn(f"large voxelization ahead: up to {est.voxels_at_most:.3g} voxels at {voxel:g} m (~{est.memory_gb:.1f} "
+             f"GB){big}; `polycc info` estimates the time; a larger --voxel or --crop makes it smaller")
+
+
+def occupancy(scene: Scene, settings: SceneSettings, progress: Progress | None = None,
+              warn: Warn | None = None) -> OccupancyGrid:
     """Exact V+ of the scene at ``settings.voxel``, with the floater filter's loss computed."""
+    check_size(scene, settings.voxel, warn)
     n = len(scene.ellipsoids)
     t = time.perf_counter()
     occ = voxelize(scene.ellipsoids, settings.voxel, settings.min_splats_per_voxel,
                    progress=(lambda done: progress("voxelize", done, n)) if progress else None)
+    if scene.triangles is not None and len(scene.triangles):
+        nt = len(scene.triangles)
+        occ = merge_triangles(occ, scene.triangles,
+                              progress=(lambda done: progress("triangles", done, nt)) if progress else None)
     occ.stats["time_s"] = time.perf_counter() - t
     if settings.min_splats_per_voxel > 1 and occ.removed is not None and len(occ.removed):
         if progress:
@@ -95,18 +124,20 @@ def occupancy(scene: Scene, settings: SceneSettings, progress: Progress | None =
 
 
 def build(scene_path: str | Path, out: str | Path, settings: SceneSettings | None = None,
-          options: BuildOptions | None = None, progress: Progress | None = None) -> BuildResult:
+          options: BuildOptions | None = None, progress: Progress | None = None,
+          warn: Warn | None = None) -> BuildResult:
     """Build the on-board scene of ``scene_path`` into the folder ``out``.
 
     Parameters
     ----------
-    scene_path : path of a 3DGS .ply, point-cloud .ply or .splat file.
+    scene_path : a scene file: 3DGS .ply, .compressed.ply, .splat, .spz, point-cloud or mesh .ply.
     out : output folder (created): ``polytopes.h``, ``manifest.json``, ``scene.bin``, ``cover.npz``,
         ``report.png``.
     settings : scene and occupancy options (default: :class:`SceneSettings` defaults: sigma 1,
         no transform, 5 cm voxels).
     options : budgets and cover options (default: 64 KiB, no other budget).
     progress : ``progress(stage, done, total)``, called as the stages advance.
+    warn : ``warn(line)`` for a non-metric extent or a large voxelization ahead (before the work).
 
     Returns
     -------
@@ -119,8 +150,8 @@ def build(scene_path: str | Path, out: str | Path, settings: SceneSettings | Non
     options = options or BuildOptions()
     budget = options.budget()
     out = Path(out)
-    scene = read(scene_path, settings, progress)
-    occ = occupancy(scene, settings, progress)
+    scene = read(scene_path, settings, progress, warn)
+    occ = occupancy(scene, settings, progress, warn)
     if progress:
         progress("cover", 0, 1)
     t = time.perf_counter()
@@ -175,6 +206,8 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
         "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
         "union_volume_m3": best.union_volume, "modelled_us": us,
         "floater_filter": occ.stats.get("floater_filter"),
+        "dropped_isolated": [{"splats": g.count, "centroid_m": g.centroid.tolist(), "lo_m": g.lo.tolist(),
+                              "hi_m": g.hi.tolist(), "distance_to_main_body_m": g.gap} for g in scene.dropped_groups],
         "candidates": [{"n": c.n, "normal_table_cap": c.max_normals, "normals": c.n_normals, "halfplanes": c.n_planes,
                         "dropped": c.dropped, "bytes": c.bytes, "conservativeness": c.conservativeness,
                         "ci95": c.conservativeness_ci} for c in cands],

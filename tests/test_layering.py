@@ -24,7 +24,7 @@ RANK = {
     "codegen": 6,
     "pipeline": 7,
     "plan": 7.5,  # planner on the certified free space: may import onboard, geometry, budget; the pipeline does not
-    "sim": 8, "ground": 8,
+    "sim": 8, "ground": 8, "view": 8,
     "testing": 9,
     "cli": 10, "polycc": 10, "__main__": 11,
 }

@@ -17,6 +17,10 @@ from polycc.version import __version__
 # Order is the order shown by `polycc --help`.
 COMMAND_MODULES = [
     "demo_scene",
+    "info",
+    "align",
+    "export",
+    "view",
     "voxelize",
     "cover",
     "verify",

@@ -20,6 +20,8 @@ from typing import Callable
 
 # Options whose value may start with '-' (coordinates, boxes).
 NEGATIVE_VALUE_OPTIONS: set[str] = set()
+# Options whose choices start with '-' (``--up -y``): option -> the choices.
+NEGATIVE_CHOICE_OPTIONS: dict[str, set[str]] = {}
 _NUMBERISH = re.compile(r"^-(\d|\.\d|inf|nan)", re.IGNORECASE)
 
 
@@ -37,7 +39,8 @@ def join_negative_values(argv: list[str]) -> list[str]:
     i = 0
     while i < len(argv):
         a = argv[i]
-        if a in NEGATIVE_VALUE_OPTIONS and i + 1 < len(argv) and _NUMBERISH.match(argv[i + 1]):
+        if i + 1 < len(argv) and ((a in NEGATIVE_VALUE_OPTIONS and _NUMBERISH.match(argv[i + 1]))
+                                  or argv[i + 1] in NEGATIVE_CHOICE_OPTIONS.get(a, ())):
             out.append(f"{a}={argv[i + 1]}")
             i += 2
             continue

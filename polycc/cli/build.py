@@ -8,7 +8,7 @@ from polycc import pipeline
 from polycc.budget import cycle_model
 from polycc.budget.reduce import MIN_PLANES
 from polycc.cli.argtypes import number
-from polycc.cli.console import StageProgress, console
+from polycc.cli.console import StageProgress, console, warn
 from polycc.cli.scene_args import add_scene_options, output_dir, print_summary, resolve_scene_settings
 from polycc.cover.build import COVER_COSTS, DEFAULT_MERGE_COST
 from polycc.occupancy.floaters import floater_text
@@ -30,7 +30,7 @@ def register(sub) -> None:
                     "OUT/polytopes.h, OUT/manifest.json, OUT/scene.bin (the same bytes as the header's arrays), "
                     "OUT/cover.npz and OUT/report.png. Every stored polytope contains its exact one.",
     )
-    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply or .splat file")
+    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, .compressed.ply, .splat, .spz, point-cloud or mesh .ply")
     p.add_argument("-o", "--output", default="out", metavar="OUT", help="output folder (default: %(default)s)")
     p.add_argument("--flash-kb", type=number(float, 0.0, FLASH_KB_MAX, lo_open=True, unit="KiB"), default=64.0,
                    metavar="N",
@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     settings = resolve_scene_settings(args)
     options = BuildOptions(**{k: getattr(args, k) for k in BuildOptions.__dataclass_fields__})
     with StageProgress() as progress:
-        r = pipeline.build(args.scene, out, settings, options, progress)
+        r = pipeline.build(args.scene, out, settings, options, progress, warn)
     scene, occ, family, best, us = r.scene, r.occupancy, r.family, r.best, r.modelled_us
     fl = floater_text(occ.stats)
     rows = [
@@ -79,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
         ("splats read / kept", f"{scene.stats.read:,} / {scene.stats.kept:,}"),
         ("invalid / opacity-filtered / cropped",
          f"{scene.stats.invalid:,} / {scene.stats.filtered_opacity:,} / {scene.stats.cropped:,}"),
+        *([("isolated splats dropped (--drop-isolated; listed in manifest.json)",
+            f"{scene.stats.dropped_isolated:,} in {len(scene.dropped_groups):,} groups")]
+          if scene.stats.dropped_isolated else []),
         ("voxels (g)", f"{len(occ):,} ({occ.voxel_size:g} m)"),
         *([("floater filter", fl)] if fl else []),
         ("N before merging (sub-cover)", f"{family.n_max:,}"),
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         ("bytes / budget", f"{best.bytes:,} / {r.manifest['stats']['budget_bytes']:,} "
                            f"({best.bytes / best.n_planes:.1f} B per half-plane)"),
         ("binding budget", r.binding),
-        ("conservativeness Vol(union)/Vol(V+)", f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% "
+        ("conservativeness Vol(union)/Vol(V+)", f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95 % "
                                                 "CI)"),
         ("modelled on-board time @168 MHz", f"typical {us['typical_us']:.0f} us, worst {us['worst_us']:.0f} us"),
         ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"

@@ -36,7 +36,7 @@ def register(sub) -> None:
                     "(every H^n, half-planes n.p <= d with unit n, and vertices, metres), OUT/cover.json, "
                     "OUT/tradeoff.png and OUT/cover_n<k>.png. Check the result with `polycc verify OUT SCENE`.",
     )
-    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply or .splat file")
+    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, .compressed.ply, .splat, .spz, point-cloud or mesh .ply")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output directory (created if missing)")
     add_scene_options(p)
     c = p.add_argument_group("cover options")

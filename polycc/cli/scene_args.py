@@ -15,7 +15,7 @@ import numpy as np
 
 from polycc import pipeline
 from polycc.cli.argtypes import NEGATIVE_VALUE_OPTIONS, number, numbers
-from polycc.cli.console import StageProgress, console, summary_table
+from polycc.cli.console import StageProgress, console, summary_table, warn
 from polycc.errors import PolyccError
 from polycc.occupancy.grid import OccupancyGrid
 from polycc.scene.load import Scene
@@ -51,8 +51,13 @@ def add_scene_options(parser: argparse.ArgumentParser, from_dir: bool = False) -
                         f"ellipsoids straddling the boundary are kept whole (default: no crop){tail}")
     NEGATIVE_VALUE_OPTIONS.add("--crop")
     g.add_argument("--drop-invalid", action="store_const", const=True, default=None,
-                   help="skip splats with NaN/Inf values or a zero-length quaternion instead of refusing the file "
-                        f"(default: refuse){tail}")
+                   help="skip splats with NaN/Inf values, a zero-length quaternion or (packed formats) a size code "
+                        f"saturated at the format's maximum instead of refusing the file; counted (default: refuse)"
+                        f"{tail}")
+    g.add_argument("--drop-isolated", type=_isolated, metavar="R,N",
+                   help="splat-level floater filter: drop every group of fewer than N splats whose centres, in "
+                        "cells of R metres, touch no other group (far, isolated splats); the cover is certified "
+                        f"against the kept splats and the dropped groups are listed (default: off){tail}")
     g.add_argument("--voxel", type=number(float, 0.0, 10.0, lo_open=True, unit="m"), metavar="G",
                    help=f"voxel side length g in metres; voxel corners lie on multiples of g "
                         f"(default: {d['voxel']:g}){tail}")
@@ -61,6 +66,21 @@ def add_scene_options(parser: argparse.ArgumentParser, from_dir: bool = False) -
                         "hardware setting was 30). With M > 1 the cover is certified only against the FILTERED "
                         "occupancy: splats in removed voxels may lie partly outside it (the build reports how many "
                         f"and how deep) (default: {d['min_splats_per_voxel']}){tail}")
+
+
+def _isolated(text: str) -> tuple[float, int]:
+    parts = text.split(",")
+    try:
+        r, n = float(parts[0]), int(parts[1])
+        ok = len(parts) == 2 and np.isfinite(r) and r > 0 and n >= 2
+    except (ValueError, IndexError):
+        ok = False
+    if not ok:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected R,N with R > 0 metres and N >= 2 splats, e.g. 0.1,50")
+    return r, n
+
+
+_isolated.__name__ = "R,N"
 
 
 def _show(v) -> str:
@@ -77,7 +97,7 @@ def resolve_scene_settings(args: argparse.Namespace, recorded: SceneSettings | N
     else the defaults.  An explicit option that disagrees with ``recorded`` raises a PolyccError
     naming both values.  Also stored as ``args.scene_settings``."""
     out = SceneSettings() if recorded is None else SceneSettings.from_record(recorded.as_record())
-    for key in ("sigma", "min_opacity", "crop", "drop_invalid", "voxel", "min_splats_per_voxel"):
+    for key in ("sigma", "min_opacity", "crop", "drop_invalid", "voxel", "min_splats_per_voxel", "drop_isolated"):
         v = getattr(args, key, None)
         if v is None:
             continue
@@ -126,13 +146,13 @@ def output_dir(path: str | Path) -> Path:
 def load_scene_from_args(scene_path: str, args: argparse.Namespace) -> Scene:
     settings = getattr(args, "scene_settings", None) or resolve_scene_settings(args)
     with StageProgress() as progress:
-        return pipeline.read(scene_path, settings, progress)
+        return pipeline.read(scene_path, settings, progress, warn)
 
 
 def voxelize_scene(scene: Scene, args: argparse.Namespace) -> OccupancyGrid:
     settings = getattr(args, "scene_settings", None) or resolve_scene_settings(args)
     with StageProgress() as progress:
-        return pipeline.occupancy(scene, settings, progress)
+        return pipeline.occupancy(scene, settings, progress, warn)
 
 
 def load_scene_and_occupancy(scene_path: str, args: argparse.Namespace) -> tuple[Scene, OccupancyGrid]:
@@ -153,6 +173,20 @@ def scene_summary_rows(scene: Scene) -> list[tuple[str, str]]:
     ]
     if s.sigma_floored:
         rows.append(("sigma raised to 1e-7 m (conservative)", f"{s.sigma_floored:,}"))
+    if s.invalid_saturated:
+        rows.append(("saturated size codes (dropped)", f"{s.invalid_saturated:,}"))
+    if s.quantized_inflated:
+        rows.append(("inflated for quantization (outward)", f"{s.quantized_inflated:,}"))
+    if s.triangles:
+        rows.append(("mesh triangles (kept / cropped)", f"{s.triangles - s.triangles_cropped:,} / "
+                                                        f"{s.triangles_cropped:,}"))
+    if s.dropped_isolated:
+        g = scene.dropped_groups
+        far = max(g, key=lambda x: x.gap) if g else None
+        rows.append(("isolated splats dropped (groups)", f"{s.dropped_isolated:,} ({len(g):,})"))
+        if far is not None:
+            rows.append(("  farthest dropped group", f"{far.count:,} at {np.round(far.centroid, 2).tolist()} m, "
+                                                     f"{far.gap:.2f} m away"))
     return rows
 
 

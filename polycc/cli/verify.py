@@ -31,7 +31,7 @@ def register(sub) -> None:
                     "in OUT without using the cover code: (a) all 8 corners of every occupied voxel inside one "
                     "polytope, at the listed levels directly and at every level n = N..1 by a merge certificate; "
                     "(b) points sampled on and inside every kept ellipsoid inside some polytope; (c) Monte Carlo "
-                    "conservativeness Vol(U H^n)/Vol(V+) with a 95 %% confidence interval. Tolerances count against "
+                    "conservativeness Vol(U H^n)/Vol(V+) with a 95 % confidence interval. Tolerances count against "
                     "the cover. The scene options default to the ones OUT was made with (an explicit option that "
                     "disagrees is an error). With a floater filter (--min-splats-per-voxel > 1) the cover is "
                     "certified against the FILTERED occupancy: the splats that touch removed voxels are listed and "
@@ -89,10 +89,23 @@ def run(args: argparse.Namespace) -> int:
     else:
         console.print(f"certifying against the exact occupancy of {args.scene} (g = {grid.voxel_size:g} m, "
                       "no floater filter): every kept splat ellipsoid must be inside the cover", soft_wrap=True)
+    if scene.stats.dropped_isolated:
+        r, m = st.drop_isolated
+        console.print(f"the splat-level floater filter (--drop-isolated {r:g},{m}) dropped "
+                      f"{scene.stats.dropped_isolated:,} splats in {len(scene.dropped_groups):,} groups, as the "
+                      "build did: certifying against the kept splats", soft_wrap=True)
+    centers, axes = ell.centers, ell.axes()
+    if scene.triangles is not None and len(scene.triangles):  # a mesh: points on every triangle must be covered too
+        from polycc.occupancy.triangles import triangle_samples
+
+        pts = triangle_samples(scene.triangles)
+        centers, axes = np.concatenate([centers, pts]), np.concatenate([axes, np.zeros((len(pts), 3, 3))])
+        console.print(f"and {len(pts):,} points on the {len(scene.triangles):,} mesh triangles (corners, edge "
+                      "midpoints, centroids, random)", soft_wrap=True)
     levels = None if args.levels == "default" else _levels(args.levels)
     t0 = time.perf_counter()
     with StageProgress() as progress:
-        rep = verify(path, ell.centers, ell.axes(), grid.indices, grid.voxel_size, grid.origin,
+        rep = verify(path, centers, axes, grid.indices, grid.voxel_size, grid.origin,
                      levels=levels, all_levels_certificate=args.all_levels_certificate,
                      samples_per_ellipsoid=args.samples_per_ellipsoid, min_samples=args.min_samples,
                      mc_samples=args.mc_samples, seed=args.seed, progress=progress)
@@ -110,8 +123,8 @@ def run(args: argparse.Namespace) -> int:
 
     t = Table(title=f"polycc verify: {path}", header_style="bold")
     for h in ("n", "half-planes", "voxels checked", "uncovered voxels", "points sampled", "uncovered points",
-              "conservativeness (95% CI)"):
-        t.add_column(h, justify="right")
+              "conservativeness (95 % CI)"):
+        t.add_column(h, justify="right", overflow="fold")
     for l in rep.levels:
         t.add_row(str(l.n), f"{l.halfplanes:,}", f"{l.voxels_checked:,}", str(l.voxels_uncovered),
                   f"{l.points_sampled:,}", str(l.points_uncovered),
@@ -133,5 +146,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"verify: {'PASS' if rep.ok else 'FAIL'} against the {occ_text} | levels checked directly {len(rep.levels)}, "
           "by certificate "
           f"{rep.certificate_levels} | voxels checked {vox:,} | points sampled {pts:,} | uncovered voxels {unv:,} "
-          f"points {unp:,} | conservativeness (95% CI) {cons}")
+          f"points {unp:,} | conservativeness (95 % CI) {cons}")
     return 0 if rep.ok else 1

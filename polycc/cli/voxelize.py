@@ -22,7 +22,8 @@ def register(sub) -> None:
                     "meets at least one kept splat ellipsoid. Output: .npz with integer (N,3) voxel indices "
                     "(voxel i spans [origin + i*g, origin + (i+1)*g] metres), voxel_size g, origin and counts.",
     )
-    p.add_argument("scene", metavar="SCENE", help="3DGS .ply, point-cloud .ply (x y z [radius]) or .splat file")
+    p.add_argument("scene", metavar="SCENE",
+                   help="3DGS .ply, .compressed.ply, .splat, .spz, point-cloud .ply (x y z [radius]) or mesh .ply")
     p.add_argument("-o", "--output", required=True, metavar="FILE.npz", help="where to write the occupancy grid")
     add_scene_options(p)
     p.set_defaults(func=run)

@@ -23,8 +23,20 @@ def plot_trajectories(path: str | Path, trials: list, polytope_vertices: list[np
 
     fig, axes = plt.subplots(1, 3, figsize=(18, 6.5))
     draw_views(axes, trials, polytope_vertices, ellipsoids, max_splats, seed)
-    fig.suptitle(title or "polycc SITL: green = reached goal, orange = stuck/timeout, red = collision")
-    fig.tight_layout()
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    handles = [Line2D([], [], color="tab:green", lw=2, label="reached the goal"),
+               Line2D([], [], color="tab:orange", lw=2, label="stuck / timeout"),
+               Line2D([], [], color="tab:red", lw=2, label="collision"),
+               Line2D([], [], marker="o", color="k", ls="", markersize=5, label="start"),
+               Line2D([], [], marker="*", color="k", ls="", markersize=9, label="goal"),
+               Line2D([], [], ls="--", marker=".", color="k", label="planned waypoints"),
+               Patch(facecolor="tab:blue", alpha=0.25, edgecolor="tab:blue", label="stored polytopes"),
+               Line2D([], [], marker=".", color="0.4", ls="", label="splat centres")]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), frameon=False, fontsize=11)
+    fig.suptitle(title or "polycc SITL flights")
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)

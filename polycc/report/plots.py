@@ -1,4 +1,7 @@
-"""report.png: three views of the stored cover over the splat centres, and the n-vs-conservativeness curve."""
+"""report.png: three views of the stored cover over the splat centres, and the n-vs-conservativeness curve.
+
+Readable with hundreds of overlapping polytopes: each view fills every polytope with a colour for its
+depth along the viewing axis (height in the top view) and draws the far ones first, like a depth map."""
 
 from __future__ import annotations
 
@@ -43,23 +46,37 @@ def write_report(
 
     rng = np.random.default_rng(seed)
     pts = centers if len(centers) <= max_points else centers[rng.choice(len(centers), max_points, replace=False)]
-    fig, axes = plt.subplots(1, 4, figsize=(22, 5.5), gridspec_kw={"width_ratios": [1, 1, 1, 1.1]})
+    fig, axes = plt.subplots(2, 2, figsize=(16, 12), layout="constrained")
+    axes = axes.ravel()
     allv = np.concatenate(polytope_vertices) if polytope_vertices else pts
     lo = np.minimum(pts.min(0), allv.min(0))
     hi = np.maximum(pts.max(0), allv.max(0))
-    colors = plt.cm.tab20(np.arange(len(polytope_vertices)) % 20)
+    # Many polytopes overlap in projection: fill each with a colour for its depth along the viewing axis
+    # and draw the far ones first, so a view reads like a depth map (the nearest surface on top).
+    depth_axis = {(0, 1): (2, +1), (0, 2): (1, -1), (1, 2): (0, +1)}  # top: z up; front: looking +y; side: from +x
+    cmap = plt.get_cmap("viridis")
     for ax, (name, a, b) in zip(axes[:3], VIEWS):
-        ax.scatter(pts[:, a], pts[:, b], s=0.2, c="0.35", alpha=0.4, linewidths=0)
-        for v, col in zip(polytope_vertices, colors):
-            o = _outline(v, a, b)
+        ax.scatter(pts[:, a], pts[:, b], s=0.3, c="0.55", alpha=0.35, linewidths=0, rasterized=True)
+        d, sgn = depth_axis[(a, b)]
+        near = np.array([sgn * (v[:, d].max() if sgn > 0 else v[:, d].min()) for v in polytope_vertices]) \
+            if polytope_vertices else np.zeros(0)
+        dlo, dhi = float(lo[d]), float(hi[d])
+        norm = plt.Normalize(dlo, max(dhi, dlo + 1e-9))
+        for i in np.argsort(near):
+            o = _outline(polytope_vertices[i], a, b)
             if o is not None:
-                ax.add_patch(Polygon(o, closed=True, facecolor=(*col[:3], 0.18), edgecolor=col, linewidth=0.7))
+                val = polytope_vertices[i][:, d].max() if sgn > 0 else polytope_vertices[i][:, d].min()
+                ax.add_patch(Polygon(o, closed=True, facecolor=(*cmap(norm(val))[:3], 0.85), edgecolor="0.15",
+                                     linewidth=0.25))
         ax.set_xlim(lo[a] - 0.05, hi[a] + 0.05)
         ax.set_ylim(lo[b] - 0.05, hi[b] + 0.05)
         ax.set_aspect("equal")
-        ax.set_title(name)
+        what = "xyz"[d] + (" (nearest on top)" if d != 2 else " (highest on top)")
+        ax.set_title(f"{name}: {len(polytope_vertices)} polytopes, colour = {what}")
         ax.set_xlabel("xyz"[a] + " [m]")
         ax.set_ylabel("xyz"[b] + " [m]")
+        sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
+        fig.colorbar(sm, ax=ax, shrink=0.8, label="xyz"[d] + " [m]")
     ax = axes[3]
     if curve:
         c = np.array(sorted(curve))
@@ -72,7 +89,6 @@ def write_report(
     ax.legend()
     ax.set_title("trade-off")
     fig.suptitle(title)
-    fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -16,6 +16,7 @@ import numpy as np
 from polycc.errors import PolyccError
 from polycc.geometry.ellipsoid_box import boxes_intersect
 from polycc.scene.ellipsoids import SIGMA_FLOOR_M, Ellipsoids, quaternion_to_rotation
+from polycc.scene.quantized import inflated_sigmas
 from polycc.scene.readers import read_splats
 from polycc.scene.transform import apply_transform, check_transform, scale_matrix
 
@@ -34,6 +35,10 @@ class SceneOptions:
     crop:         (xmin, ymin, zmin, xmax, ymax, zmax) metres, world frame; keeps every
                   ellipsoid that meets the box, including those that straddle its boundary.
     drop_invalid: skip NaN/Inf splats and degenerate quaternions instead of refusing.
+    drop_isolated: (R metres, N splats) or None: the splat-level floater filter, drop every group of
+                  fewer than N splats whose centres (binned in cells of side R, world frame) touch no
+                  other group (:func:`polycc.scene.survey.splat_groups`); the cover is then certified
+                  against the kept splats and the dropped groups are listed.
     """
 
     sigma: float = 1.0
@@ -42,6 +47,7 @@ class SceneOptions:
     scale: float | None = None
     crop: tuple[float, float, float, float, float, float] | None = None
     drop_invalid: bool = False
+    drop_isolated: tuple[float, int] | None = None
 
     def world_matrix(self) -> np.ndarray:
         T = np.eye(4) if self.transform is None else np.asarray(self.transform, np.float64)
@@ -56,9 +62,14 @@ class SceneStats:
     invalid: int = 0
     invalid_nonfinite: int = 0
     invalid_quaternion: int = 0
+    invalid_saturated: int = 0
     filtered_opacity: int = 0
     cropped: int = 0
+    triangles: int = 0
+    dropped_isolated: int = 0
+    triangles_cropped: int = 0
     sigma_floored: int = 0
+    quantized_inflated: int = 0
     kept: int = 0
 
     def as_dict(self) -> dict:
@@ -72,6 +83,9 @@ class Scene:
     options: SceneOptions
     stats: SceneStats = field(default_factory=SceneStats)
     sha256: str = ""
+    info: dict = field(default_factory=dict)  # format details from the reader (format, version, quantization)
+    triangles: np.ndarray | None = None  # (T, 3, 3) mesh triangles, world frame, metres (mesh .ply only)
+    dropped_groups: list = field(default_factory=list)  # splat-level floater filter: survey.Group of each
 
 
 def file_sha256(path: Path) -> str:
@@ -87,8 +101,8 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
 
     Parameters
     ----------
-    path : a 3DGS .ply (graphdeco layout, any property order), a point-cloud .ply (x y z
-        [radius]) or an antimatter15 .splat file.
+    path : a 3DGS .ply (graphdeco layout, any property order), SuperSplat .compressed.ply, Niantic .spz,
+        a mesh .ply, a point-cloud .ply (x y z [radius]) or an antimatter15 .splat file.
     opts : sigma (the k-sigma ellipsoid), opacity filter, 4x4 trainer-frame -> world transform
         (metres), uniform scale, crop box (metres, world frame), whether to drop invalid splats.
 
@@ -116,9 +130,15 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
     else:
         qn = None
         bad_q = np.zeros(stats.read, bool)
+    if raw.bounds is not None:  # a saturated size code: the true splat may be any size
+        finite &= np.isfinite(raw.bounds.pos_err).all(axis=1) & np.isfinite(raw.bounds.quat_err)
+        bad_sat = finite & ~bad_q & raw.bounds.saturated()
+    else:
+        bad_sat = np.zeros(stats.read, bool)
     stats.invalid_nonfinite = int((~finite).sum())
     stats.invalid_quaternion = int(bad_q.sum())
-    valid = finite & ~bad_q
+    stats.invalid_saturated = int(bad_sat.sum())
+    valid = finite & ~bad_q & ~bad_sat
     stats.invalid = stats.read - int(valid.sum())
     if stats.invalid and not opts.drop_invalid:
         parts = []
@@ -126,6 +146,9 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
             parts.append(f"{stats.invalid_nonfinite} splats with NaN/Inf values")
         if stats.invalid_quaternion:
             parts.append(f"{stats.invalid_quaternion} with a zero-length rotation quaternion")
+        if stats.invalid_saturated:
+            parts.append(f"{stats.invalid_saturated} whose size code is saturated at the format's maximum (the true "
+                         "size is unbounded; re-export from the original .ply to keep them)")
         raise PolyccError(
             f"{path}: {' and '.join(parts)} (of {stats.read}); pass --drop-invalid to skip them, or fix the export"
         )
@@ -138,6 +161,11 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
     else:
         q = raw.quats[valid] / qn[valid, None]
         R = quaternion_to_rotation(q)
+        if raw.bounds is not None:  # quantized file: hold every splat the stored bits allow
+            sig = inflated_sigmas(raw.bounds.subset(valid), float(opts.sigma))
+            stats.quantized_inflated = int(len(sig))
+    op_hi = (raw.opacity[valid].astype(np.float64) if raw.bounds is None
+             else np.maximum(raw.bounds.opacity_hi[valid], raw.opacity[valid]))
     ell = Ellipsoids(
         centers=raw.positions[valid],
         rotations=R,
@@ -149,14 +177,20 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
     T = opts.world_matrix()
     if not np.array_equal(T, np.eye(4)):
         ell = apply_transform(ell, T)
+    tris = None
+    if raw.triangles is not None:
+        tris = np.asarray(raw.triangles, np.float64) @ T[:3, :3].T + T[:3, 3]
+        stats.triangles = int(len(tris))
+        if not np.isfinite(tris).all():
+            raise PolyccError(f"{path}: the mesh has NaN/Inf vertex coordinates; repair the mesh")
     small = ell.sigmas < SIGMA_FLOOR_M
     stats.sigma_floored = int(small.any(axis=1).sum())
     if stats.sigma_floored:
         ell.sigmas = np.maximum(ell.sigmas, SIGMA_FLOOR_M)
 
     # -- opacity filter
-    if opts.min_opacity > 0:
-        keep = ell.opacity >= opts.min_opacity
+    if opts.min_opacity > 0:  # outward for quantized alpha: drop only if even its upper bound is below
+        keep = op_hi >= opts.min_opacity
         stats.filtered_opacity = int((~keep).sum())
         ell = ell.subset(keep)
 
@@ -167,6 +201,19 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
         keep = crop_mask(ell, lo, hi)
         stats.cropped = int((~keep).sum())
         ell = ell.subset(keep)
+        if tris is not None:  # keep every triangle whose box meets the crop box (straddling ones whole)
+            tk = np.all((tris.min(axis=1) <= hi) & (tris.max(axis=1) >= lo), axis=1)
+            stats.triangles_cropped = int((~tk).sum())
+            tris = tris[tk]
+
+    dropped_groups = []
+    if opts.drop_isolated is not None and len(ell):
+        from polycc.scene.survey import isolated_mask
+
+        drop, dropped_groups = isolated_mask(ell.centers, float(opts.drop_isolated[0]), int(opts.drop_isolated[1]))
+        if drop.any():
+            stats.dropped_isolated = int(drop.sum())
+            ell = ell.subset(~drop)
 
     stats.kept = len(ell)
     if stats.kept == 0:
@@ -181,7 +228,8 @@ def load_scene(path: str | Path, opts: SceneOptions | None = None) -> Scene:
             f"{path}: zero splats left after filtering ({', '.join(why)} of {stats.read} read); "
             "lower --min-opacity or widen --crop (the crop box is in metres, after --transform/--scale)"
         )
-    return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=file_sha256(path))
+    return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=file_sha256(path), info=dict(raw.info),
+                 triangles=tris, dropped_groups=dropped_groups)
 
 
 def crop_mask(ell: Ellipsoids, lo: np.ndarray, hi: np.ndarray, chunk: int = 200_000) -> np.ndarray:
@@ -208,6 +256,10 @@ def _check_options(opts: SceneOptions) -> None:
         raise PolyccError(f"--scale {opts.scale}: must be a positive factor (file units to metres)")
     if opts.transform is not None:
         check_transform(np.asarray(opts.transform, np.float64), "--transform")
+    if opts.drop_isolated is not None:
+        r, n = opts.drop_isolated
+        if not (np.isfinite(r) and r > 0 and int(n) >= 2):
+            raise PolyccError(f"--drop-isolated {r:g},{n}: give a cell side R > 0 metres and a group size N >= 2")
     if opts.crop is not None:
         c = np.asarray(opts.crop, np.float64)
         if c.shape != (6,) or not np.all(np.isfinite(c)) or np.any(c[:3] >= c[3:]):

@@ -8,12 +8,13 @@ not yet normalised; validation happens in :mod:`polycc.scene.load`.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from polycc.errors import PolyccError
+from polycc.scene.quantized import QuantBounds, decode_splat_quaternion, splat_opacity_hi
 
 SH_C0 = 0.28209479177387814  # degree-0 spherical-harmonic constant (colour = 0.5 + C0 * f_dc)
 
@@ -34,6 +35,9 @@ class RawSplats:
     opacity: np.ndarray
     colors: np.ndarray | None
     is_points: bool = False
+    bounds: QuantBounds | None = None
+    triangles: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
 
 
 def read_splats(path: str | Path) -> RawSplats:
@@ -43,15 +47,41 @@ def read_splats(path: str | Path) -> RawSplats:
         raise PolyccError(f"{path}: no such file; check the path")
     if path.is_dir():
         raise PolyccError(f"{path}: is a directory; give a .ply or .splat file")
+    name = path.name.lower()
     ext = path.suffix.lower()
     if ext == ".ply":
         return read_ply(path)
     if ext == ".splat":
         return read_splat(path)
+    if ext == ".spz":
+        from polycc.scene.packed import read_spz
+
+        return read_spz(path)
+    for suffix, what in UNREAD_FORMATS.items():
+        if name.endswith(suffix):
+            raise PolyccError(
+                f"{path}: {what} is a format polycc does not read; convert it to .ply first: "
+                f"`npx @playcanvas/splat-transform@{SPLAT_TRANSFORM_VERSION} {path} {path.stem.split('.')[0]}.ply`"
+            )
     raise PolyccError(
-        f"{path}: unknown extension '{path.suffix}'; polycc reads 3DGS or point-cloud .ply and antimatter15 .splat "
-        "files"
+        f"{path}: unknown extension '{path.suffix}'; polycc reads 3DGS, SuperSplat .compressed.ply, point-cloud and "
+        "mesh .ply, antimatter15 .splat and Niantic .spz files; other splat formats convert with "
+        f"`npx @playcanvas/splat-transform@{SPLAT_TRANSFORM_VERSION} IN OUT.ply`"
     )
+
+
+# The converter the error messages name (the ecosystem's reference; it reads all of these).
+SPLAT_TRANSFORM_VERSION = "3.7.0"
+UNREAD_FORMATS = {
+    ".sog": "PlayCanvas SOG (WebP-compressed splats)",
+    "meta.json": "an unbundled PlayCanvas SOG (meta.json + WebP images)",
+    ".ksplat": "a mkkellogg GaussianSplats3D .ksplat",
+    ".lcc": "an XGRIDS .lcc",
+    ".lcc2": "an XGRIDS .lcc2",
+    ".glb": "a glTF (KHR_gaussian_splatting) .glb",
+    ".gltf": "a glTF .gltf",
+    ".splatv": "a 4D .splatv",
+}
 
 
 # ---------------------------------------------------------------------------- .splat
@@ -70,12 +100,22 @@ def read_splat(path: Path) -> RawSplats:
             "re-download it"
         )
     rec = np.fromfile(path, dtype=_SPLAT_DTYPE)
+    n = len(rec)
+    # The 8-bit quaternion only says which bucket each component is in (writers truncate or round,
+    # with 128 or 127.5): decode at the bucket's centre and inflate the splat to hold every rotation
+    # in it (polycc.scene.quantized). Position and scale are float32, exact.
+    q_hat, q_err = decode_splat_quaternion(rec["rot"])
+    alpha = rec["rgba"][:, 3]
+    bounds = QuantBounds(pos_err=np.zeros((n, 3)), sigma_hi=np.abs(rec["scale"].astype(np.float64)), quat_err=q_err,
+                         opacity_hi=splat_opacity_hi(alpha), what=".splat 8-bit quaternion (bucket ~1.3 deg)")
     return RawSplats(
         positions=rec["pos"].astype(np.float64),
         sigmas=rec["scale"].astype(np.float64),
-        quats=(rec["rot"].astype(np.float64) - 128.0) / 128.0,
-        opacity=(rec["rgba"][:, 3].astype(np.float32) / np.float32(255.0)),
+        quats=q_hat,
+        opacity=(alpha.astype(np.float32) / np.float32(255.0)),
         colors=rec["rgba"][:, :3].copy(),
+        bounds=bounds,
+        info={"format": ".splat (antimatter15)"},
     )
 
 
@@ -95,17 +135,19 @@ def read_ply(path: Path) -> RawSplats:
         ply = PlyData.read(str(path))
         if "vertex" not in ply:
             raise PolyccError(f"{path}: the .ply has no 'vertex' element; export the splats (or points) as vertices")
-        faces = [e for e in ply.elements if e.name in ("face", "tristrips", "edge")]
-        if faces:
-            e = faces[0]
+        strips = [e for e in ply.elements if e.name == "tristrips"]
+        if strips:
             raise PolyccError(
-                f"{path}: the .ply is a mesh ({e.count:,} '{e.name}' elements); polycc reads splats and points, "
-                "and reading only the mesh's vertices would leave its surfaces out of the cover; sample the mesh "
-                "surface into a dense point cloud (x y z radius) or splats first (mesh voxelization is not supported "
-                "yet)"
+                f"{path}: the mesh is stored as triangle strips ({strips[0].count:,} 'tristrips'); polycc reads "
+                "'face' and 'edge' elements: re-export the mesh with faces (e.g. Blender or MeshLab, .ply with faces)"
             )
         _check_body_length(path, ply)
+        from polycc.scene.packed import is_compressed_ply, read_compressed_ply
+
+        if is_compressed_ply(ply):
+            return read_compressed_ply(path, ply)
         v = ply["vertex"].data
+        triangles = _mesh_triangles(path, ply, v)
     except PolyccError:
         raise
     except PlyHeaderParseError as exc:
@@ -138,7 +180,12 @@ def read_ply(path: Path) -> RawSplats:
             opacity=np.ones(n, np.float32),
             colors=_ply_colors(v, names),
             is_points=True,
+            triangles=None if triangles is None else pos[triangles],
+            info={"format": "mesh .ply" if triangles is not None else "point-cloud .ply"},
         )
+    if triangles is not None:
+        raise PolyccError(f"{path}: a .ply with both Gaussian splat properties and faces; export the splats and the "
+                          "mesh as two files")
 
     if len(scales) != 3:
         have = ", ".join(scales) or "none"
@@ -160,7 +207,41 @@ def read_ply(path: Path) -> RawSplats:
         op[~np.isfinite(np.asarray(v["opacity"], np.float64))] = np.nan
     else:
         op = np.ones(n, np.float32)
-    return RawSplats(positions=pos, sigmas=sig, quats=quats, opacity=op, colors=_ply_colors(v, names))
+    return RawSplats(positions=pos, sigmas=sig, quats=quats, opacity=op, colors=_ply_colors(v, names),
+                     info={"format": "3DGS .ply"})
+
+
+def _mesh_triangles(path: Path, ply, v) -> np.ndarray | None:
+    """(T, 3) int64 vertex indices of the mesh's triangles (polygons fanned, edges as degenerate
+    triangles), or None when the .ply has no 'face'/'edge' element."""
+    tris = []
+    n = len(v)
+    for e in ply.elements:
+        if e.name == "face":
+            props = [p.name for p in e.properties]
+            key = "vertex_indices" if "vertex_indices" in props else "vertex_index" if "vertex_index" in props else None
+            if key is None:
+                raise PolyccError(f"{path}: the 'face' element has no vertex_indices list (it has {props}); "
+                                  "re-export the mesh")
+            faces = e.data[key]
+            lens = np.fromiter((len(f) for f in faces), np.int64, len(faces))
+            if np.any(lens < 3):
+                raise PolyccError(f"{path}: {int((lens < 3).sum()):,} faces with fewer than 3 corners; repair the mesh")
+            for k in np.unique(lens):  # fan each k-gon: (0, j, j + 1)
+                f = np.vstack(list(faces[lens == k])).astype(np.int64)
+                j = np.arange(1, k - 1)
+                tris.append(np.stack([np.repeat(f[:, 0], k - 2), f[:, j].ravel(), f[:, j + 1].ravel()], axis=1))
+        elif e.name == "edge":
+            a = np.asarray(e.data["vertex1"], np.int64)
+            b = np.asarray(e.data["vertex2"], np.int64)
+            tris.append(np.stack([a, b, b], axis=1))  # a segment is a degenerate triangle
+    if not tris:
+        return None
+    t = np.concatenate(tris)
+    if t.size and (t.min() < 0 or t.max() >= n):
+        raise PolyccError(f"{path}: faces refer to vertex {int(t.max() if t.max() >= n else t.min())} of {n:,}; "
+                          "repair the mesh")
+    return t
 
 
 def _header_length(path: Path) -> int:

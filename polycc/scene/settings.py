@@ -20,7 +20,7 @@ from polycc.scene.transform import load_transform, scale_matrix
 
 SCENE_DEFAULTS = {
     "sigma": 1.0, "min_opacity": 0.0, "transform": None, "scale": None, "crop": None, "drop_invalid": False,
-    "voxel": 0.05, "min_splats_per_voxel": 1,
+    "voxel": 0.05, "min_splats_per_voxel": 1, "drop_isolated": None,
 }
 _IDENTITY = np.eye(4)
 
@@ -41,13 +41,16 @@ class SceneSettings:
     drop_invalid: bool = False
     voxel: float = 0.05
     min_splats_per_voxel: int = 1
+    drop_isolated: tuple | None = None
     world_matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     def scene_options(self) -> SceneOptions:
         T = np.asarray(self.world_matrix, np.float64)
         return SceneOptions(sigma=self.sigma, min_opacity=self.min_opacity,
                             transform=None if np.array_equal(T, _IDENTITY) else T, scale=None,
-                            crop=None if self.crop is None else tuple(self.crop), drop_invalid=self.drop_invalid)
+                            crop=None if self.crop is None else tuple(self.crop), drop_invalid=self.drop_invalid,
+                            drop_isolated=None if self.drop_isolated is None else
+                            (float(self.drop_isolated[0]), int(self.drop_isolated[1])))
 
     def as_record(self) -> dict:
         """JSON-ready record (manifest.json ``scene_settings``, cover.npz meta)."""
@@ -55,6 +58,7 @@ class SceneSettings:
                 "scale": self.scale, "crop": None if self.crop is None else list(self.crop),
                 "drop_invalid": self.drop_invalid, "voxel": self.voxel,
                 "min_splats_per_voxel": self.min_splats_per_voxel,
+                "drop_isolated": None if self.drop_isolated is None else list(self.drop_isolated),
                 "world_matrix": np.asarray(self.world_matrix, np.float64).tolist()}
 
     @staticmethod
@@ -62,6 +66,8 @@ class SceneSettings:
         kw = {k: rec.get(k, v) for k, v in SCENE_DEFAULTS.items()}
         if kw["crop"] is not None:
             kw["crop"] = tuple(float(c) for c in kw["crop"])
+        if kw["drop_isolated"] is not None:
+            kw["drop_isolated"] = (float(kw["drop_isolated"][0]), int(kw["drop_isolated"][1]))
         T = rec.get("world_matrix")
         return SceneSettings(**kw, world_matrix=np.eye(4) if T is None else np.asarray(T, np.float64))
 

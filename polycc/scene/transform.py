@@ -2,9 +2,13 @@
 
 A transform is a 4x4 affine matrix ``T`` (p_world = A p + t). JSON files may hold
 
-* ``{"matrix": [[...4 rows...]]}`` or a bare 4x4 list, or
+* ``{"matrix": [[...4 rows...]]}`` or a bare 4x4 list (a 3x4 matrix gets the row 0 0 0 1), or
 * a similarity ``{"scale": s, "rotation": R, "translation": [tx, ty, tz]}`` where
-  ``rotation`` is a 3x3 matrix or a quaternion ``[w, x, y, z]`` (each key optional).
+  ``rotation`` is a 3x3 matrix or a quaternion ``[w, x, y, z]`` (each key optional), or
+* nerfstudio's ``dataparser_transforms.json`` (``{"transform": 3x4, "scale": s}``, the map from the
+  capture's frame to nerfstudio's normalised one, p_ns = s (T p)): polycc applies its INVERSE, so
+  splats exported by ``ns-export gaussian-splat`` (nerfstudio's frame) go back to the capture's frame
+  (metres when the poses were, e.g. ARKit/Polycam/Record3D captures).
 
 An affine image of an ellipsoid is an ellipsoid: L' = A L, re-factored as R' S' by SVD.
 """
@@ -20,9 +24,21 @@ from polycc.errors import PolyccError
 from polycc.scene.ellipsoids import Ellipsoids, quaternion_to_rotation
 
 _FORMATS = (
-    '{"matrix": [[a,b,c,tx],[d,e,f,ty],[g,h,i,tz],[0,0,0,1]]} or '
-    '{"scale": s, "rotation": [w,x,y,z] or 3x3, "translation": [tx,ty,tz]}'
+    '{"matrix": [[a,b,c,tx],[d,e,f,ty],[g,h,i,tz],[0,0,0,1]]} (4x4 or 3x4), '
+    '{"scale": s, "rotation": [w,x,y,z] or 3x3, "translation": [tx,ty,tz]} or nerfstudio\'s '
+    'dataparser_transforms.json'
 )
+
+
+def _affine(m, what: str) -> np.ndarray:
+    T = np.asarray(m, dtype=np.float64)
+    if T.shape == (3, 4):
+        T = np.vstack([T, [0.0, 0.0, 0.0, 1.0]])
+    if T.shape != (4, 4):
+        raise ValueError(f"{what} has shape {T.shape}, expected 4x4 or 3x4")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise ValueError("the last row must be 0 0 0 1 (no projective transforms)")
+    return T
 
 
 def load_transform(path: str | Path) -> np.ndarray:
@@ -40,11 +56,17 @@ def load_transform(path: str | Path) -> np.ndarray:
         if not isinstance(data, dict):
             raise ValueError("expected an object or a 4x4 list")
         if "matrix" in data:
-            T = np.asarray(data["matrix"], dtype=np.float64)
-            if T.shape != (4, 4):
-                raise ValueError(f"matrix has shape {T.shape}, expected 4x4")
-            if not np.allclose(T[3], [0, 0, 0, 1]):
-                raise ValueError("the last row must be 0 0 0 1 (no projective transforms)")
+            T = _affine(data["matrix"], "matrix")
+        elif "transform" in data:  # nerfstudio dataparser_transforms.json: p_ns = scale * (T p); invert it
+            fwd = _affine(data["transform"], "transform")
+            s = float(data.get("scale", 1.0))
+            if not s > 0:
+                raise ValueError("scale must be positive")
+            fwd[:3, :] *= s
+            if abs(np.linalg.det(fwd[:3, :3])) < 1e-12:
+                raise ValueError("the transform's 3x3 part is singular")
+            T = np.linalg.inv(fwd)
+            T[3] = [0.0, 0.0, 0.0, 1.0]
         else:
             unknown = set(data) - {"scale", "rotation", "translation"}
             if unknown:

@@ -17,6 +17,7 @@ from polycc.codegen.header import c_float, load_manifest_polytopes
 from polycc.geometry.halfplanes import hull_halfplanes, polytope_vertices
 from polycc.occupancy.grid import OccupancyGrid
 from polycc.testing.files import CHECKOUT as REPO
+from polycc.testing.files import SCENES
 
 
 def random_hull(rng, n=25, scale=0.3):
@@ -46,7 +47,7 @@ def test_c_float_is_exact():
 
 
 def _ring_args(tmp_path, kb, extra=()):
-    return ["build", str(REPO.parent / "shared" / "scenes" / "ring_10k.splat"), "--scale", "1.0", "--voxel", "0.02",
+    return ["build", str(SCENES / "ring_10k.splat"), "--scale", "1.0", "--voxel", "0.02",
             "--flash-kb", str(kb), "--mc-samples", "20000", "-o", str(tmp_path / f"out{kb}"), *extra]
 
 
@@ -65,7 +66,7 @@ def _check_cover(out, grid: OccupancyGrid):
 
 @pytest.fixture(scope="module")
 def built4(tmp_path_factory):
-    if not (REPO.parent / "shared" / "scenes").is_dir():
+    if not SCENES.is_dir():
         pytest.skip("real scenes not found (../shared/scenes)")
     tmp = tmp_path_factory.mktemp("build4")
     assert main(_ring_args(tmp, 4)) == 0

@@ -1,7 +1,7 @@
 """Regression tests: places where polycc reported safety that was not there .
 
 1. sim/verify/sim-device take the scene settings from the build folder; a disagreeing option is an error.
-2. A mesh .ply (face element) is refused.
+2. A mesh .ply (face element) was read as its corner points: now its triangles are voxelized exactly.
 3. A .ply body longer or shorter than its header is refused (binary and ASCII).
 4. The floater filter reports the voxels it removed, the splats it leaves partly uncovered and how deep.
 5. Bad option values are one-line errors with exit code 2.
@@ -119,17 +119,20 @@ def test_another_scene_than_the_build_is_an_error(transformed_build, tmp_path, c
 
 
 # ---------------------------------------------------------------------------- 2., 3. ply bodies
-def test_mesh_ply_is_refused(tmp_path, capsys):
-    """A 4 x 3 m wall as two triangles was read as its 4 corner points."""
+def test_mesh_ply_triangles_are_voxelized(tmp_path, capsys):
+    """A 4 x 3 m wall as two triangles was read as its 4 corner points (then refused); now every voxel its
+    surface meets is occupied (its plane and edges lie on voxel faces, so both layers of closed voxels meet them:
+    x in -1..8, z in -1..6, y in -1..0)."""
+    from polycc.occupancy.grid import OccupancyGrid
+
     v = np.array([(0, 0, 0), (4, 0, 0), (4, 0, 3), (0, 0, 3)], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
     f = np.array([([0, 1, 2],), ([0, 2, 3],)], dtype=[("vertex_indices", "i4", (3,))])
     p = tmp_path / "wall.ply"
     PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(p))
-    with pytest.raises(PolyccError, match="mesh"):
-        read_splats(p)
-    assert main(["voxelize", str(p), "-o", str(tmp_path / "o.npz")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "not supported yet" in err
+    assert read_splats(p).triangles.shape == (2, 3, 3)
+    assert main(["voxelize", str(p), "--voxel", "0.5", "-o", str(tmp_path / "o.npz")]) == 0
+    g = OccupancyGrid.load(tmp_path / "o.npz")
+    assert len(g) == 10 * 8 * 2 and set(g.indices[:, 1]) == {-1, 0}
 
 
 @pytest.mark.parametrize("text", [False, True])

@@ -173,5 +173,8 @@ def test_splat_reader(tmp_path):
     rec.tofile(p)
     s = load_scene(p, SceneOptions(min_opacity=0.4))
     assert s.stats.read == 3 and s.stats.filtered_opacity == 1
-    np.testing.assert_allclose(s.ellipsoids.rotations[0], np.eye(3), atol=1e-12)
-    np.testing.assert_allclose(s.ellipsoids.sigmas, 0.01, rtol=1e-6)
+    # the 8-bit quaternion is decoded at its bucket's centre (within ~0.6 deg of identity here) and the
+    # sphere is inflated by the bucket's rotation bound (tests/scene/test_quantized.py)
+    np.testing.assert_allclose(s.ellipsoids.rotations[0], np.eye(3), atol=0.01)
+    assert np.all(s.ellipsoids.sigmas >= 0.01 * (1 - 1e-7)) and np.all(s.ellipsoids.sigmas < 0.0105)
+    assert s.stats.quantized_inflated == 3
