@@ -26,6 +26,7 @@ from polycc.occupancy.exact import voxelize
 from polycc.occupancy.floaters import floater_loss, floater_text, loss_record
 from polycc.occupancy.grid import OccupancyGrid
 from polycc.occupancy.triangles import merge_triangles
+from polycc.onboard.app import app_rate_hz
 from polycc.onboard.layout import stored_vertices
 from polycc.report.plots import write_report
 from polycc.scene.load import Scene, load_scene
@@ -192,6 +193,7 @@ def tradeoff_curve(cands: list[Candidate]) -> list[tuple[int, float, float]]:
 
 def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, options, budget) -> dict:
     rec = settings.as_record()
+    worst = int(np.ceil(us["worst_us"] * cycle_model.CPU_HZ / 1e6))
     opts = {**{k: v for k, v in rec.items() if k != "world_matrix"}, **asdict(options)}
     stats = {
         "splats_read": scene.stats.read, "splats_kept": scene.stats.kept, "scene_stats": scene.stats.as_dict(),
@@ -205,6 +207,7 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
         "max_halfplanes": min(best.caps.values()), "binding_budget": binding,
         "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
         "union_volume_m3": best.union_volume, "modelled_us": us,
+        "app_rate_hz": app_rate_hz(worst),  # the rate polycc_app.c runs this header at (None: refused)
         "floater_filter": occ.stats.get("floater_filter"),
         "dropped_isolated": [{"splats": g.count, "centroid_m": g.centroid.tolist(), "lo_m": g.lo.tolist(),
                               "hi_m": g.hi.tolist(), "distance_to_main_body_m": g.gap} for g in scene.dropped_groups],
@@ -216,7 +219,7 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
     return {
         "scene_settings": rec, "floater_line": floater_text(occ.stats) or "none (--min-splats-per-voxel 1)",
         "kappa": options.kappa, "budget_bytes": budget.flash_bytes, "max_planes": min(best.caps.values()),
-        "worst_cycles": int(np.ceil(us["worst_us"] * cycle_model.CPU_HZ / 1e6)),
+        "worst_cycles": worst,
         "typical_cycles": int(np.ceil(us["typical_us"] * cycle_model.CPU_HZ / 1e6)),
         "binding": binding,
         "conservativeness_text": f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% CI)",

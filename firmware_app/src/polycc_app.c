@@ -206,11 +206,21 @@ static void readVector(logVarId_t a, logVarId_t b, logVarId_t c, bool have, floa
 
 /* Give the vehicle to the high-level commander, holding position: go_to the stopping point of
  * a POLYCC_APP_HANDOVER_ACC deceleration (no further than half the last clearance), then relax
- * the priority.  If the high-level commander refuses, the app keeps holding the position itself. */
+ * the priority.  If the high-level commander refuses, the app keeps holding the position itself.
+ * If the planner is already running (each app setpoint stops it, so the ground sent a takeoff,
+ * go_to or land since the last one, e.g. a land right after enable = 0), its plan is kept: the
+ * app only relaxes the priority. */
 static void handOverHold(void)
 {
     float x[3], v[3], yaw = 0.0f, s, d, T;
     int i;
+    if (!crtpCommanderHighLevelIsStopped()) {
+        trace.handovers += 1u;
+        commanderRelaxPriority();
+        engaged = false;
+        holding = false;
+        return;
+    }
     readVector(idX, idY, idZ, haveEstimate, x);
     readVector(idVx, idVy, idVz, haveVelocity, v);
     if (!haveEstimate || !coordOk(x[0]) || !coordOk(x[1]) || !coordOk(x[2])) {

@@ -97,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         ("modelled on-board time @168 MHz", f"typical {us['typical_us']:.0f} us, worst {us['worst_us']:.0f} us"),
         ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"
                                             + ("" if args.rate_hz else "  (bound it with --rate-hz)")),
+        ("on-board loop rate (polycc.rate)", _rate_text(r.manifest["stats"]["app_rate_hz"])),
         ("time: occupancy / cover / budget",
          f"{r.timings_s['occupancy']:.1f} / {r.timings_s['cover']:.1f} / {r.timings_s['budget']:.1f} s"),
         ("outputs", f"{out}/polytopes.h, manifest.json, scene.bin, cover.npz, report.png"),
@@ -105,3 +106,15 @@ def run(args: argparse.Namespace) -> int:
     console.print(f"build: n = {best.n}, {best.n_planes} half-planes, {best.bytes} bytes -> {out / 'polytopes.h'} "
                   f"({r.timings_s['total']:.1f} s)")
     return 0
+
+
+def _rate_text(rate: int | None) -> str:
+    """The rate the app will run this header at (its default 500 Hz request), in words."""
+    from polycc.onboard.app import CPU_SHARE_PERCENT, DEFAULT_RATE_HZ, MIN_RATE_HZ
+
+    if rate is None:
+        return (f"none: the worst case does not fit {CPU_SHARE_PERCENT} % of a {1000 // MIN_RATE_HZ} ms period "
+                "(the app refuses it, status 12); rebuild with --rate-hz")
+    if rate < DEFAULT_RATE_HZ:
+        return f"{rate} Hz (lowered from {DEFAULT_RATE_HZ} Hz so the worst case fits {CPU_SHARE_PERCENT} % of a period)"
+    return f"{rate} Hz"

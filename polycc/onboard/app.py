@@ -34,3 +34,24 @@ REPLY_FORMAT = "<BBffff"
 echo of the first bytes of the request."""
 PARAM_GROUP = "polycc"
 LOG_GROUP = "polycc"
+
+# polycc_app.h: the app's rate choice (a test checks these against the header).
+DEFAULT_RATE_HZ = 500  # POLYCC_APP_DEFAULT_RATE_HZ
+MIN_RATE_HZ = 10  # POLYCC_APP_MIN_RATE_HZ
+CPU_HZ = 168_000_000  # POLYCC_APP_CPU_HZ
+CPU_SHARE_PERCENT = 50  # POLYCC_APP_CPU_SHARE_PERCENT: the worst case must fit this share of a period
+TICK_RATE_HZ = 1000  # FreeRTOS configTICK_RATE_HZ on the Crazyflie
+
+
+def app_rate_hz(worst_cycles: int, requested_hz: int = DEFAULT_RATE_HZ) -> int | None:
+    """The loop rate (Hz) the app runs a scene at: ``requested_hz`` rounded to whole 1 ms ticks and
+    lowered until ``worst_cycles`` (POLYCC_SCENE_WORST_CYCLES) fits CPU_SHARE_PERCENT of a period,
+    as ``periodTicks()`` in polycc_app.c does; None if it does not fit even MIN_RATE_HZ (status 12)."""
+    per_tick = CPU_HZ // TICK_RATE_HZ
+    avail = per_tick * CPU_SHARE_PERCENT
+    t_min = max(1, -(-int(worst_cycles) * 100 // avail))
+    if t_min > TICK_RATE_HZ // MIN_RATE_HZ:
+        return None
+    r = max(MIN_RATE_HZ, int(requested_hz))
+    t = max(1, (TICK_RATE_HZ + r // 2) // r, t_min)
+    return TICK_RATE_HZ // t
