@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import resource
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-SCENES = REPO.parent / "shared" / "scenes"
+SCENES = Path(os.environ.get("POLYCC_SHARED_SCENES", REPO.parent / "shared" / "scenes"))  # as polycc.testing.files
 RESULTS = REPO / "bench" / "results"
 CACHE = REPO / "build" / "bench-cache"
 
