@@ -81,6 +81,8 @@ class Runner:
         passed: dict = {}
         out: dict = {}
         users = _users(graph)
+        if progress:
+            progress(0, len(graph))
         for k, (key, task) in enumerate(graph.items()):
             keep, pass_on, dt = _timed(task.fn, *_args(task), *[passed[d] for d in task.deps])
             self._account(key, dt)
@@ -144,6 +146,8 @@ class PoolRunner(Runner):
         out: dict = {}
         running: dict = {}
         done_n = 0
+        if progress:
+            progress(0, len(graph))
 
         def launch():
             for key in [k for k, deps in waiting.items() if not deps]:
@@ -233,6 +237,8 @@ class DaskRunner(Runner):
             return c.scatter(a) if isinstance(a, np.ndarray) and a.nbytes > (1 << 20) else a
 
         users = _users(graph)
+        if progress:
+            progress(0, len(graph))
         for n, (key, task) in enumerate(graph.items()):
             name = f"polycc-{tag}-{n}"
             fut = c.submit(_timed, task.fn, *[ship(a) for a in _args(task)], *[passed[d] for d in task.deps],
