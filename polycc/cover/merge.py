@@ -42,6 +42,9 @@ BOUND_CELLS = 2048
 # lattice points; volumes and planes are within ~1e-9 cells, far below the cost differences.
 # Stored nodes always use exact "Qt" hulls.
 EVAL_QHULL = b"QJ"
+# heap entry kinds: a bound of the cost, the exact cost, or an old key handed on by a part's stage
+BOUND, EXACT, STALE = 0, 1, -1
+DIRECT_CELLS = 4096  # boxes up to this many cells are counted voxel by voxel (cheaper than columns)
 DENSE_LIMIT = 1 << 24  # cells (bool grid + int32 summed-volume table ~ 85 MB); above: sorted column keys
 
 
@@ -138,6 +141,9 @@ class VoxelBoxQuery:
         hi = np.minimum(np.asarray(hi, np.int64), np.asarray(self.shape) - 1)
         if np.any(hi < lo):
             return 0
+        if self.dense is not None and np.prod(hi - lo + 1) <= DIRECT_CELLS:  # small box: test its voxels
+            sub = self.dense[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1, lo[2] : hi[2] + 1]
+            return _inside_count(np.argwhere(sub) + lo, np.asarray(A, np.float64), np.asarray(b, np.float64), tol)
         a = int(np.argmax(hi - lo))
         ua, va = _OTHER[a]
         lu = np.arange(lo[ua], hi[ua] + 2, dtype=np.float64)  # corner lines of the footprint
@@ -161,11 +167,11 @@ class VoxelBoxQuery:
         t1 = np.floor(np.clip(cu, lo[a] - 1, hi[a] + 2)) - 1
         t0 = np.maximum(t0, lo[a]).astype(np.int64).ravel()
         t1 = np.minimum(t1, hi[a]).astype(np.int64).ravel()
-        keep = t1 >= t0
-        if not np.any(keep):
+        keep = np.flatnonzero(t1 >= t0)
+        if not len(keep):
             return 0
-        U, V = np.meshgrid(np.arange(lo[ua], hi[ua] + 1), np.arange(lo[va], hi[va] + 1), indexing="ij")
-        return int(self._columns(a, U.ravel()[keep], V.ravel()[keep], t0[keep], t1[keep]).sum())
+        nv = hi[va] - lo[va] + 1
+        return int(self._columns(a, lo[ua] + keep // nv, lo[va] + keep % nv, t0[keep], t1[keep]).sum())
 
     def voxels(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """(M, 3) voxels with lo <= v <= hi (inclusive voxel indices), for tests and small boxes."""
@@ -247,9 +253,10 @@ class StageResult:
 
     merges: [(ref a, ref b)] in order; costs: cost of each, cells; created: the nodes it made, in
     order (their refs are ``ref_base + len(inputs) + t``); live: the nodes left; entries: the
-    heap entries ``(cost, i, j, exact, occupied)`` between live nodes (positions in ``live``),
-    every one computed for the live pair (costs do not depend on the stage: the hull of two
-    nodes of a region lies in its box); pair_evaluations, margin_rounds as in MergeResult.
+    heap entries ``(cost, i, j, kind, occupied)`` between live nodes (positions in ``live``; kind
+    BOUND, EXACT, or STALE: an old key of a pair the lazy refresh had not re-evaluated yet). Costs
+    do not depend on the stage (the hull of two nodes of a region lies in its box);
+    pair_evaluations, margin_rounds as in MergeResult.
     """
 
     merges: list
@@ -483,7 +490,7 @@ class MergeStage:
     def add_pair(self, a: int, b: int, batch: bool = False, exact: bool = False) -> None:
         a, b = (a, b) if a < b else (b, a)
         c, _, _, ex, occ = self.evaluate(a, b, exact)
-        entry = (c, a, b, ex, occ)
+        entry = (c, a, b, EXACT if ex else BOUND, occ)
         self.heap.append(entry) if batch else heapq.heappush(self.heap, entry)
         self.fresh.add((a, b))
         self.adj[a].add(b)
@@ -512,10 +519,14 @@ class MergeStage:
                 continue
             c, i, j, ex, occ = heapq.heappop(heap)
             if alive[i] and alive[j]:
-                if ex:
+                if ex == EXACT:
                     return c, i, j, occ
+                if ex == STALE:  # handed on by a part's stage: evaluate it for these live nodes now
+                    c2, _, _, ex2, occ2 = self.evaluate(i, j, False)
+                    heapq.heappush(heap, (c2, i, j, EXACT if ex2 else BOUND, occ2))
+                    continue
                 c2, _, _, _, occ2 = self.evaluate(i, j, True)
-                heapq.heappush(heap, (c2, i, j, True, occ2))  # bound -> exact
+                heapq.heappush(heap, (c2, i, j, EXACT, occ2))  # bound -> exact
                 continue
             if self.eager:
                 continue  # the merged node's pairs were all evaluated when it was made
@@ -586,7 +597,8 @@ class MergeStage:
         live = StageNodes([self.ref(int(k)) for k in ids], [self.verts[k] for k in ids], [self.planes[k] for k in ids],
                           self.weight[ids].copy(), self.volume[ids].copy(),
                           [self.patterns[k] if k < m else None for k in ids])
-        # hand on one entry per live pair: fresh ones as they are, stale ones re-evaluated now
+        # hand on one entry per live pair: fresh ones as they are, stale ones (lazy refresh) as
+        # STALE with their old key, evaluated when they reach the top, as they would be here
         entries, seen = [], set()
         for c, i, j, ex, occ in sorted(self.heap):
             if self.alive[i] and self.alive[j]:
@@ -596,10 +608,8 @@ class MergeStage:
             elif not self.eager:
                 a, b = self.find(i), self.find(j)
                 a, b = min(a, b), max(a, b)
-                if a != b and (a, b) not in self.fresh:
-                    self.add_pair(a, b, batch=True)
-                    c2, _, _, ex2, occ2 = self.heap[-1]
+                if a != b and (a, b) not in self.fresh and (a, b) not in seen:
                     seen.add((a, b))
-                    entries.append((c2, pos[a], pos[b], ex2, occ2))
+                    entries.append((c, pos[a], pos[b], STALE, None))
         return StageResult(self.merges, np.asarray(self.costs, np.float64), created, live, entries,
                            self.evals, self.rounds)

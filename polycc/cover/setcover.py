@@ -27,13 +27,16 @@ import numpy as np
 from polycc.cover.clusters import Clusters
 
 
-def greedy_set_cover(cl: Clusters) -> np.ndarray:
+def greedy_set_cover(cl: Clusters, covered: np.ndarray | None = None) -> np.ndarray:
     """Rows of ``cl`` (cluster C_v for row v < V, else an exact box) forming the sub-cover
-    C-bar, in pick order."""
+    C-bar, in pick order. ``covered`` ((V,) bool) marks voxels another leaf already holds."""
     nb = cl.neighbours
     V = cl.n_voxels
     w = cl.weight()
+    pre = covered
     covered = np.zeros(V + 1, dtype=bool)  # index -1 -> the sentinel slot V (always covered)
+    if pre is not None:
+        covered[:V] = pre
     covered[V] = True
     nbi = np.where(nb >= 0, nb, V)
     fresh = cl.sizes.astype(np.int64)  # an upper bound of each set's new voxels, exact when recounted

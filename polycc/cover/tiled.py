@@ -38,9 +38,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from polycc.cover.clusters import build_clusters, neighbour_offsets
+from polycc.cover.clusters import build_clusters, neighbour_offsets, pack, solid_blocks
 from polycc.cover.merge import MergeStage, StageNodes
 from polycc.cover.setcover import greedy_set_cover
+from polycc.geometry.lattice import CORNER_OFFSETS as CORNERS
 from polycc.geometry.lattice import integer_planes, lattice_hull, voxel_corner_points, world_halfplanes
 from polycc.parallel import Runner, Task
 
@@ -127,9 +128,11 @@ def prep_task(tile_id: int, rows: np.ndarray, voxels: np.ndarray, b: int, boxes:
     ``rows``: their rows in the grid). Returns (kept: the leaves, in world units and as grid rows;
     passed on: the leaves as stage nodes and the tile's voxels)."""
     t0 = time.perf_counter()
-    cl = build_clusters(voxels, b, boxes)
+    blo, blev, block = solid_blocks(voxels)
+    in_block = block >= 0
+    cl = build_clusters(voxels, b, boxes, centres=np.flatnonzero(~in_block) if in_block.any() else None)
     t1 = time.perf_counter()
-    chosen = greedy_set_cover(cl)
+    chosen = greedy_set_cover(cl, in_block if in_block.any() else None)
     t2 = time.perf_counter()
     offs = neighbour_offsets(cl.b)
     pats = cl.pattern[chosen]
@@ -140,20 +143,38 @@ def prep_task(tile_id: int, rows: np.ndarray, voxels: np.ndarray, b: int, boxes:
         mask = cl.neighbours[rep] >= 0
         keys[int(p)] = np.packbits(mask).tobytes()  # the same key for the same shape in every tile
         pplanes[int(p)] = integer_planes(lattice_hull(voxel_corner_points(offs[mask])))
-    leaf_verts = [cl.hull_vertices[p] + voxels[v] for p, v in zip(pats, centres)]
-    leaf_planes = []
+    # solid blocks first (aligned cubes: zero waste, six planes), then the set cover's picks
+    leaf_verts, leaf_planes, bkeys = [], [], []
+    cube_planes: dict = {}
+    for lo, L in zip(blo, blev):
+        s = 1 << int(L)
+        if int(L) not in cube_planes:
+            cube_planes[int(L)] = integer_planes(lattice_hull(CORNERS * s))
+        nrm, off = cube_planes[int(L)]
+        leaf_verts.append(CORNERS * s + lo)
+        leaf_planes.append((nrm, off + nrm @ lo))
+        bkeys.append(b"block%d" % int(L))
+    leaf_verts += [cl.hull_vertices[p] + voxels[v] for p, v in zip(pats, centres)]
     for p, v in zip(pats, centres):
         nrm, off = pplanes[int(p)]
         leaf_planes.append((nrm, off + nrm @ voxels[v]))
     ref0 = tile_id << REF_SHIFT
-    nodes = StageNodes([ref0 + k for k in range(len(chosen))], leaf_verts, leaf_planes,
-                       cl.weights[pats].astype(np.float64), cl.volumes[pats].astype(np.float64),
-                       [keys[int(p)] for p in pats])
+    vol_b = (8.0 ** blev).astype(np.float64)
+    nodes = StageNodes([ref0 + k for k in range(len(blev) + len(chosen))], leaf_verts, leaf_planes,
+                       np.concatenate([np.zeros(len(blev)), cl.weights[pats].astype(np.float64)]),
+                       np.concatenate([vol_b, cl.volumes[pats].astype(np.float64)]),
+                       bkeys + [keys[int(p)] for p in pats])
     wplanes, wverts = _world(leaf_verts, leaf_planes, base, g, origin)
     members = cl.neighbours[chosen]
     mask = members >= 0
-    kept = {"tile": tile_id, "leaf_voxel": rows[centres], "leaf_sizes": mask.sum(axis=1),
-            "leaf_members": rows[members[mask]], "refs": nodes.ref, "weight": nodes.weight, "volume": nodes.volume,
+    order_b = np.argsort(block[in_block], kind="stable")
+    b_members = np.flatnonzero(in_block)[order_b]
+    b_sizes = np.bincount(block[in_block], minlength=len(blev))
+    b_centre = np.searchsorted(pack(voxels), pack(blo + (1 << blev)[:, None] // 2))  # the voxel at its centre
+    kept = {"tile": tile_id, "leaf_voxel": rows[np.concatenate([b_centre, centres]).astype(np.int64)],
+            "leaf_sizes": np.concatenate([b_sizes, mask.sum(axis=1)]),
+            "leaf_members": rows[np.concatenate([b_members, members[mask]]).astype(np.int64)],
+            "refs": nodes.ref, "weight": nodes.weight, "volume": nodes.volume,
             "planes": wplanes, "vertices": wverts, "patterns": len(cl.weights), "voxels": len(voxels),
             "seconds": {"clusters": t1 - t0, "set_cover": t2 - t1, "halfplanes": time.perf_counter() - t2}}
     return kept, (nodes, voxels)

@@ -17,6 +17,7 @@ number of distinct occupied voxels, not by the scene size.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
@@ -34,6 +35,10 @@ SPLAT_CHUNK = 32_768
 ITEM_BATCH = 400_000
 MAX_VOXELS_PER_SPLAT = 1 << 27
 PARALLEL_MIN_SPLATS = 50_000  # below this, slabs cost more than they save
+# Splats at least this many voxels across on every axis have a solid interior; the scene is refused
+# when those interiors would fill more than MAX_SOLID_VOXELS voxels (their cover costs their volume).
+SOLID_MIN_DIAMETER = 8.0
+MAX_SOLID_VOXELS = 250_000
 
 
 def pack_keys(idx: np.ndarray) -> np.ndarray:
@@ -168,6 +173,36 @@ def _voxelize_chunk(c: np.ndarray, M: np.ndarray, imin: np.ndarray, imax: np.nda
     return tests
 
 
+def solid_interior_voxels(ell: Ellipsoids, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """(per splat the voxels of g its solid interior fills, mask of the splats counted): the
+    ellipsoid's volume in voxels for the splats at least :data:`SOLID_MIN_DIAMETER` voxels across
+    on every axis (an upper bound of what overlapping ones fill together)."""
+    d = 2.0 * ell.k * ell.sigmas  # (N, 3) diameters along the principal axes, metres
+    big = np.all(d >= SOLID_MIN_DIAMETER * g, axis=1)
+    vol = np.where(big, np.pi / 6.0 * np.prod(d / g, axis=1), 0.0)
+    return vol, big
+
+
+def _refuse_solid(ell: Ellipsoids, g: float, limit: float | None) -> None:
+    """Splats much larger than a voxel cost their volume in voxels (every interior voxel is
+    covered); refuse within a second, with the reason and the fix, when that volume is large."""
+    if limit is None or len(ell) == 0:
+        return
+    vol, big = solid_interior_voxels(ell, g)
+    total = float(vol.sum())
+    if total <= limit:
+        return
+    i = int(np.argmax(vol))
+    d = 2.0 * ell.k * ell.sigmas[i]
+    g_ok = g * (total / limit) ** (1.0 / 3.0)
+    raise PolyccError(
+        f"{int(big.sum()):,} splats are much larger than a {g:g} m voxel (largest: splat {i} at "
+        f"{np.round(ell.centers[i], 2).tolist()}, {d.min():.2f} x {d.max():.2f} m at {ell.k:g} sigma); their solid "
+        f"interiors would fill about {total:,.0f} voxels (limit {limit:,.0f}), and every one of them must be covered. "
+        f"Drop or cut them (--min-opacity, --crop), lower --sigma, or use --voxel {math.ceil(g_ok * 1000) / 1000:g} "
+        "or larger")
+
+
 def _voxelize_range(ell: Ellipsoids, imin: np.ndarray, imax: np.ndarray, g: float, origin: np.ndarray, chunk: int,
                     progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray, int]:
     """(sorted keys, counts, exact tests) of the voxels in each ellipsoid's index range [imin, imax]."""
@@ -235,6 +270,7 @@ def voxelize(
     progress: Callable[[int], None] | None = None,
     chunk: int = SPLAT_CHUNK,
     runner=None,
+    max_solid_voxels: float | None = MAX_SOLID_VOXELS,
 ) -> OccupancyGrid:
     """The exact occupancy V+ of the ellipsoids ``ell``: every voxel that meets one of them.
 
@@ -249,6 +285,9 @@ def voxelize(
     progress : ``progress(n)`` with the number of ellipsoids done, after each chunk.
     runner : a :mod:`polycc.parallel` runner with more than one worker voxelizes x slabs in
         parallel (same result).
+    max_solid_voxels : refuse at once (PolyccError naming the splats and the fix) a scene whose
+        splats much larger than a voxel would fill more than this many voxels with solid interior
+        (:func:`solid_interior_voxels`); None = no limit.
 
     Returns
     -------
@@ -276,6 +315,7 @@ def voxelize(
             f"(its {ell.k:g}-sigma extent is {2 * ell.aabb_halfwidth()[i].max():.3g} m); "
             "crop it away with --crop, drop it with --min-opacity, or use a larger --voxel"
         )
+    _refuse_solid(ell, g, max_solid_voxels)
     if runner is not None and runner.workers > 1 and n >= PARALLEL_MIN_SPLATS:
         keys, counts, tests = _voxelize_slabs(ell, imin, imax, g, origin, runner, progress, chunk)
     else:
