@@ -131,7 +131,8 @@ def build_families(grid: OccupancyGrid, b: int, costs: tuple, progress=None, ref
             "neighborhood_b": int(b), "subcover_boxes": bool(boxes), "merge_cost": cost, "merge_refresh": refresh,
             "voxels": int(len(idx)), "clusters_distinct_patterns": stats["patterns"], "subcover_size": fam.n_max,
             "pair_evaluations": r["pair_evaluations"], "touch_margin_rounds": r["margin_rounds"],
-            "tiles": {k: stats[k] for k in ("tiles", "regions", "tile_voxels", "root_nodes", "workers", "where")},
+            "tiles": {k: stats[k] for k in ("tiles", "regions", "tile_voxels", "root_nodes", "workers", "where",
+                                            "by_depth")},
             # task seconds summed over tiles (on several workers they overlap); wall = the whole graph
             "timings_s": {"clusters": stats["clusters_s"], "set_cover": stats["set_cover_s"], "merge": r["merge_s"],
                           "halfplanes": stats["halfplanes_s"], "order": r["order_s"], "wall": stats["graph_wall_s"]},

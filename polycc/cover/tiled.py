@@ -329,7 +329,20 @@ def run_cover_graph(runner: Runner, indices, b, boxes, costs, refresh, base, g, 
             "margin_rounds": int(sum(st["margin_rounds"] for st in stages)),
             "merge_s": float(sum(st["seconds"] for st in stages)), "order_s": time.perf_counter() - t,
         }
+    # task seconds per kd depth (tiles: prep + merge of every cost; inner nodes: merge), for projections
+    by_depth: dict = {}
+    for r in regions:
+        d = by_depth.setdefault(str(r.depth), {"tasks": 0, "voxels": 0, "seconds": 0.0, "merges": 0})
+        d["tasks"] += 1
+        d["voxels"] += len(r.rows)
+        keys = [("prep", r.id)] + [("tile", r.id, c) for c in costs] if r.children is None else \
+            [("merge", r.id, c) for c in costs]
+        for k in keys:
+            sec = res[k]["seconds"]
+            d["seconds"] += float(sum(sec.values()) if isinstance(sec, dict) else sec)
+            d["merges"] += len(res[k].get("merges", []))
     stats = {
+        "by_depth": by_depth,
         "tiles": len(tiles), "regions": len(regions), "tile_voxels": int(tile_voxels), "root_nodes": int(root_nodes),
         "clusters_s": float(sum(t_["seconds"]["clusters"] for t_ in tiles)),
         "set_cover_s": float(sum(t_["seconds"]["set_cover"] for t_ in tiles)),
