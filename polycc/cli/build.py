@@ -7,7 +7,7 @@ import argparse
 from polycc import pipeline
 from polycc.budget import cycle_model
 from polycc.budget.reduce import MIN_PLANES
-from polycc.cli.argtypes import number
+from polycc.cli.argtypes import add_parallel_options, number
 from polycc.cli.console import StageProgress, console, warn
 from polycc.cli.scene_args import add_scene_options, output_dir, print_summary, resolve_scene_settings
 from polycc.cover.build import COVER_COSTS, DEFAULT_MERGE_COST
@@ -63,6 +63,7 @@ def register(sub) -> None:
                    help=f"Monte Carlo samples per candidate for conservativeness, at least {MC_SAMPLES_MIN:,} "
                         "(default: %(default)s)")
     add_scene_options(p)
+    add_parallel_options(p)
     p.set_defaults(func=run)
 
 
@@ -98,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
         ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"
                                             + ("" if args.rate_hz else "  (bound it with --rate-hz)")),
         ("on-board loop rate (polycc.rate)", _rate_text(r.manifest["stats"]["app_rate_hz"])),
+        ("cover tiles / where it ran", f"{family.meta['tiles']['tiles']:,} / {family.meta['tiles']['where']}"),
         ("time: occupancy / cover / budget",
          f"{r.timings_s['occupancy']:.1f} / {r.timings_s['cover']:.1f} / {r.timings_s['budget']:.1f} s"),
         ("outputs", f"{out}/polytopes.h, manifest.json, scene.bin, cover.npz, report.png"),
