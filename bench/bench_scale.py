@@ -125,10 +125,10 @@ def build(which: str, ply: Path, g: float, out: Path, extra: list[str]) -> dict:
     return r
 
 
-def verify(out: Path) -> dict:
+def verify(out: Path, scene: Path) -> dict:
     env = dict(os.environ, POLYCC_CACHE_DIR=str(REPO / ".cache-polycc"))
     t = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "polycc", "verify", str(out)], capture_output=True, text=True, env=env,
+    p = subprocess.run([sys.executable, "-m", "polycc", "verify", str(out), str(scene)], capture_output=True, text=True, env=env,
                        cwd="/tmp")
     last = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else p.stderr.strip()[-300:]
     return {"ok": p.returncode == 0 and last.startswith("verify: PASS"), "line": last, "s": time.perf_counter() - t}
@@ -196,7 +196,7 @@ def main() -> None:
         case["ours"] = build("ours", ply, g, outdir / f"{name}_ours", extra)
         print(f"{name} ours: {case['ours']['wall_s']:.1f} s", flush=True)
         if case["ours"]["rc"] == 0:
-            case["verify"] = verify(outdir / f"{name}_ours")
+            case["verify"] = verify(outdir / f"{name}_ours", ply)
             print(f"  {case['verify']['line']}", flush=True)
         if name == dask_case and not args.no_dask:
             for w in (1, 2):
