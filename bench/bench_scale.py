@@ -128,8 +128,8 @@ def build(which: str, ply: Path, g: float, out: Path, extra: list[str]) -> dict:
 def verify(out: Path, scene: Path) -> dict:
     env = dict(os.environ, POLYCC_CACHE_DIR=str(REPO / ".cache-polycc"))
     t = time.perf_counter()
-    p = subprocess.run([sys.executable, "-m", "polycc", "verify", str(out), str(scene)], capture_output=True, text=True, env=env,
-                       cwd="/tmp")
+    p = subprocess.run([sys.executable, "-m", "polycc", "verify", str(out), str(scene)], capture_output=True,
+                       text=True, env=env, cwd="/tmp")
     last = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else p.stderr.strip()[-300:]
     return {"ok": p.returncode == 0 and last.startswith("verify: PASS"), "line": last, "s": time.perf_counter() - t}
 
