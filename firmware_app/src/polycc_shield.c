@@ -178,6 +178,8 @@ uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scen
     memset(job->u_c, 0, sizeof job->u_c);
     memset(job->u_d, 0, sizeof job->u_d);
     memset(job->a_end, 0, sizeof job->a_end);
+    memcpy(job->x[0], p, 3u * sizeof(float));
+    job->lam[0] = 0.0f;
     if (!sh_params_ok(prm) || !sh_vec_ok(p, POLYCC_POS_MAX) || !sh_vec_ok(v, POLYCC_SHIELD_VA_MAX) ||
         !sh_vec_ok(a0, POLYCC_SHIELD_VA_MAX) || !sh_vec_ok(u_app, POLYCC_SHIELD_VA_MAX) ||
         !sh_vec_ok(u_d, POLYCC_SHIELD_VA_MAX)) {

@@ -141,6 +141,7 @@ def plan(scene: PackedScene, prm: ShieldParams, p, v, a0, u_app, u_d) -> Job:
     job = Job(x=np.zeros((MAX_STEPS + 1, 3), F), lam=np.zeros(MAX_STEPS + 1, F), u_c=np.zeros(3, F),
               u_d=np.zeros(3, F), a_end=np.zeros(3, F), psi=Z, grad=np.zeros(3, F), c=Z, min_c=Z, n=0, i=0, cov=0,
               evals=0, flags=0)
+    job.x[0] = p
     with np.errstate(all="ignore"):
         if not (params_ok(q) and _vec_ok(p, B.POS_MAX) and all(_vec_ok(t, VA_MAX) for t in (v, a0, u_app, u_d))):
             job.flags = INVALID | DONE

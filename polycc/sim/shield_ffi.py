@@ -95,3 +95,43 @@ def run_batch(host_scene, prm: ShieldParams, rows: np.ndarray) -> tuple[np.ndarr
                                    ffi.cast("polycc_host_shield_out_t *", ffi.from_buffer(out)),
                                    ffi.cast("float *", ffi.from_buffer(last)))
     return out, last
+
+
+# ---------------------------------------------------------------- Cortex-M4 (QEMU)
+ARM_DTYPE = np.dtype(OUT_DTYPE.descr + [("x_last", "<f4", 3)])
+
+
+def arm_program():
+    """The semihosting shield test program (polycc/sim/arm/shield_main.c) built with the firmware's
+    Cortex-M4 flags; returns the ELF path."""
+    from polycc.sim import kernel_arm as KA
+
+    srcs = [KA.ARM_DIR / "shield_main.c", KA.ARM_DIR / "startup.c", KA.ARM_DIR / "semihost.c", *SHIELD_SOURCES]
+    return KA.build("shield_test", srcs, extra_headers=[KA.ARM_DIR / "semihost.h", *SHIELD_HEADERS]) / "shield_test.elf"
+
+
+def arm_run(elf, scene, prm: ShieldParams, rows: np.ndarray, timeout: float = 600.0) -> np.ndarray:
+    """``polycc_shield_run`` per row inside qemu-system-arm; returns ARM_DTYPE records."""
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from polycc.errors import PolyccError
+    from polycc.sim import kernel_arm as KA
+
+    rows = np.ascontiguousarray(np.asarray(rows, np.float32).reshape(-1, 15))
+    q = prm.f32()
+    floats = [q[k] for k in q if not isinstance(q[k], int)]
+    ints = [q[k] for k in q if isinstance(q[k], int)]
+    head = np.array(floats, np.float32).tobytes() + np.array(ints, np.uint32).tobytes()
+    assert len(head) == load().ffi.sizeof("polycc_shield_params_t")
+    with tempfile.TemporaryDirectory(prefix="polycc-qemu-shield-") as d:
+        d = Path(d)
+        (d / "scene.bin").write_bytes(scene.to_bytes())
+        (d / "shield.bin").write_bytes(head + np.uint32(len(rows)).tobytes() + rows.tobytes())
+        cmd = [KA.QEMU, "-M", "netduinoplus2", "-nographic", "-monitor", "none", "-serial", "none",
+               "-semihosting-config", "enable=on,target=native", "-kernel", str(elf)]
+        r = subprocess.run(cmd, cwd=d, capture_output=True, text=True, timeout=timeout)
+        if r.returncode != 0:
+            raise PolyccError(f"qemu run failed (exit {r.returncode}): {(r.stdout + r.stderr).strip()[:300]}")
+        return np.frombuffer((d / "out.bin").read_bytes(), ARM_DTYPE).copy()
