@@ -160,9 +160,9 @@ static void sh_simulate(polycc_shield_job_t *job, const polycc_shield_params_t *
     }
 }
 
-uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scene, const polycc_shield_params_t *prm,
-                            const float p[3], const float v[3], const float a0[3], const float u_app[3],
-                            const float u_d[3])
+uint32_t polycc_shield_begin(polycc_shield_job_t *job, const polycc_scene_t *scene, const polycc_shield_params_t *prm,
+                             const float p[3], const float v[3], const float a0[3], const float u_app[3],
+                             const float u_d[3])
 {
     polycc_params_t kp;
     uint32_t fl;
@@ -180,6 +180,10 @@ uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scen
     memset(job->a_end, 0, sizeof job->a_end);
     memcpy(job->x[0], p, 3u * sizeof(float));
     job->lam[0] = 0.0f;
+    memcpy(job->in[0], p, sizeof job->in[0]);
+    memcpy(job->in[1], v, sizeof job->in[1]);
+    memcpy(job->in[2], a0, sizeof job->in[2]);
+    memcpy(job->in[3], u_app, sizeof job->in[3]);
     if (!sh_params_ok(prm) || !sh_vec_ok(p, POLYCC_POS_MAX) || !sh_vec_ok(v, POLYCC_SHIELD_VA_MAX) ||
         !sh_vec_ok(a0, POLYCC_SHIELD_VA_MAX) || !sh_vec_ok(u_app, POLYCC_SHIELD_VA_MAX) ||
         !sh_vec_ok(u_d, POLYCC_SHIELD_VA_MAX)) {
@@ -195,7 +199,15 @@ uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scen
         return job->flags;
     }
     sh_candidate(job, prm, v, u_d);
-    sh_simulate(job, prm, p, v, a0, u_app);
+    return job->flags;
+}
+
+uint32_t polycc_shield_simulate(polycc_shield_job_t *job, const polycc_shield_params_t *prm)
+{
+    if (job->flags & POLYCC_SHIELD_DONE) {
+        return job->flags;
+    }
+    sh_simulate(job, prm, job->in[0], job->in[1], job->in[2], job->in[3]);
     job->c = job->psi - prm->tube;
     job->min_c = job->c;
     if (job->flags & POLYCC_SHIELD_DONE) {
@@ -210,6 +222,14 @@ uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scen
         job->flags |= POLYCC_SHIELD_CERTIFIED | POLYCC_SHIELD_DONE;
     }
     return job->flags;
+}
+
+uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scene, const polycc_shield_params_t *prm,
+                            const float p[3], const float v[3], const float a0[3], const float u_app[3],
+                            const float u_d[3])
+{
+    (void)polycc_shield_begin(job, scene, prm, p, v, a0, u_app, u_d);
+    return polycc_shield_simulate(job, prm);
 }
 
 uint32_t polycc_shield_advance(polycc_shield_job_t *job, const polycc_scene_t *scene,

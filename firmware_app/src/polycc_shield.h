@@ -69,6 +69,7 @@ typedef struct polycc_shield_params {
 typedef struct polycc_shield_job {
     float x[201][3]; /* model positions x_0 = p .. x_n (POLYCC_SHIELD_MAX_STEPS + 1 rows) */
     float lam[201];  /* summed chord lengths from x_0 */
+    float in[4][3];  /* the inputs p, v, a0, u_app (kept for polycc_shield_simulate) */
     float u_c[3];    /* candidate velocity command, m/s */
     float u_d[3];    /* desired velocity after the v_max cap, m/s */
     float a_end[3];  /* model acceleration after n_lat + n_commit steps (diagnostic) */
@@ -90,6 +91,13 @@ _Static_assert(sizeof(((polycc_shield_job_t *)0)->lam) == (POLYCC_SHIELD_MAX_STE
 uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scene, const polycc_shield_params_t *prm,
                             const float p[3], const float v[3], const float a0[3], const float u_app[3],
                             const float u_d[3]);
+/* polycc_shield_plan in two halves, for two stabilizer ticks: begin validates, evaluates psi at p and
+ * builds the candidate; simulate runs the model and covers what the first sample covers (no psi
+ * evaluation).  plan == begin, then simulate unless begin decided already. */
+uint32_t polycc_shield_begin(polycc_shield_job_t *job, const polycc_scene_t *scene, const polycc_shield_params_t *prm,
+                             const float p[3], const float v[3], const float a0[3], const float u_app[3],
+                             const float u_d[3]);
+uint32_t polycc_shield_simulate(polycc_shield_job_t *job, const polycc_shield_params_t *prm);
 /* At most one more psi evaluation; returns job->flags (DONE once decided). */
 uint32_t polycc_shield_advance(polycc_shield_job_t *job, const polycc_scene_t *scene,
                                const polycc_shield_params_t *prm);
