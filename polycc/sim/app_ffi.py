@@ -56,10 +56,13 @@ HOST_CFLAGS = ["-O2", *FIRMWARE_WARN_FLAGS, "-Wextra", "-DPOLYCC_SHIM_HOST=1"]
 
 # The shims' C API, the kernel's and the app's types and constants, all from their headers; then
 # the constants of the generated header and the host-only glue below.
+# The firmware types the controller API passes on (opaque here, as in the shims).
+_OPAQUE = ("typedef struct state_s state_t;\ntypedef struct control_s control_t;\n"
+           "typedef struct sensorData_s sensorData_t;\ntypedef uint32_t stabilizerStep_t;\n"
+           "typedef struct setpoint_s setpoint_t;\n")
 CDEF = headers_cdef(SHIMS / "polycc_shim.h", SRC / "polycc_scene_layout.h", SRC / "polycc_kernel.h",
-                    SRC / "polycc_app.h", SRC / "polycc_shield.h", SRC / "polycc_controller.h") + ("typedef struct state_s state_t;\ntypedef struct control_s control_t;\n"
-                                           "typedef struct sensorData_s sensorData_t;\ntypedef uint32_t stabilizerStep_t;\n"
-                                           "typedef struct setpoint_s setpoint_t;\n") + headers_cdef(
+                    SRC / "polycc_app.h", SRC / "polycc_shield.h", SRC / "polycc_controller.h") + _OPAQUE + \
+    headers_cdef(
     SHIMS / "crtp_commander_high_level.h", SHIMS / "supervisor.h", SHIMS / "controller.h", SHIMS / "crtp.h") + """
 float polycc_host_brake_acc(void);
 #define POLYCC_SCENE_N_POLYS ...
