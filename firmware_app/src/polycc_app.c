@@ -483,13 +483,15 @@ uint32_t polycc_app_tick(void)
     uint32_t period = periodTicks(pRateHz);
 
     serviceAppChannel();
+    polycc_controller_plan((uint32_t)xTaskGetTickCount()); /* shield (polycc_controller.c): a decision when due */
     if (pEnable == 0u) {
         if (engaged) {
             handOverHold();
         }
         if (!engaged) {
             idle(linkLostLatched ? POLYCC_STATUS_LINK_LOST : POLYCC_STATUS_DISABLED);
-            return period;
+            /* idle: no kernel call here, so the shield's 100 Hz planning sets the pace */
+            return period > POLYCC_SHIELD_PERIOD_TICKS ? POLYCC_SHIELD_PERIOD_TICKS : period;
         }
         lStatus = POLYCC_STATUS_DISABLED; /* the high-level commander refused: still holding */
         holdPosition(0);

@@ -14,9 +14,11 @@
 
 #include "controller.h"
 #include "controller_pid.h"
+#include "FreeRTOS.h"
 #include "log.h"
 #include "param.h"
 #include "stabilizer_types.h"
+#include "task.h"
 
 #define DEBUG_MODULE "POLYCCSH"
 #include "debug.h"
@@ -32,19 +34,31 @@ static uint8_t pOn;
 static float pTube = POLYCC_SHIELD_DEFAULT_TUBE, pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
 static float pK1 = POLYCC_SHIELD_DEFAULT_K1, pK0 = POLYCC_SHIELD_DEFAULT_K0;
 
-/* ---- state ---- */
-static polycc_shield_job_t job;
-static polycc_shield_params_t jobPrm;
-static bool on;            /* the shield filters setpoints */
-static bool planning;      /* job belongs to the running period */
-static bool haveDecision;  /* a decision is being flown */
-static bool passThrough;   /* the decision lets the live setpoint through */
-static bool warnedManual;
-static float uCmd[3];      /* the decision's velocity */
-static float uPlanned[3];  /* desired velocity the decision was planned for */
-static polycc_controller_trace_t trace;
+/* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
+typedef struct mailbox {
+    float pos[3], vel[3], acc[3], ud[3];
+    uint32_t tick;
+    bool manual, valid;
+} mailbox_t;
 
-/* ---- log group polyccShield ---- */
+/* ---- app -> stabilizer: decisions ---- */
+typedef struct decision {
+    float u[3];        /* velocity flown when not passing */
+    float planned[3];  /* desired velocity it was planned for */
+    uint32_t from, to; /* flown for from <= tick < to (stabilizer ticks) */
+    bool pass;         /* the live setpoint passes while it stays near `planned` */
+    bool valid;
+} decision_t;
+
+static mailbox_t mbox;
+static decision_t cur, next;
+static volatile bool on; /* the shield filters setpoints (written by the app task) */
+static bool warnedManual, warnedSlow;
+static uint32_t lastPlan;
+static bool planned;
+static polycc_shield_job_t job; /* 4 kB: one plan */
+static polycc_shield_params_t jobPrm;
+static polycc_controller_trace_t trace;
 static float lPsi, lMinC;
 
 static float clampf(float x, float lo, float hi)
@@ -52,30 +66,36 @@ static float clampf(float x, float lo, float hi)
     return x < lo ? lo : (x > hi ? hi : x);
 }
 
-uint32_t polycc_controller_evals_per_tick(void)
+uint32_t polycc_controller_max_evals(void)
 {
-    const uint32_t avail = (POLYCC_APP_CPU_HZ / 1000u) * POLYCC_SHIELD_TICK_SHARE_PERCENT / 100u;
-    const uint32_t worst = polycc_app_scene_worst_cycles();
-    uint32_t e;
-    if (avail <= POLYCC_SHIELD_FIXED_CYCLES || worst == 0u) {
+    const uint64_t avail = (uint64_t)(POLYCC_APP_CPU_HZ / 1000u) * POLYCC_SHIELD_PERIOD_TICKS *
+                           POLYCC_SHIELD_CPU_SHARE_PERCENT / 100u;
+    const uint64_t own = POLYCC_SHIELD_FIXED_CYCLES + (uint64_t)POLYCC_SHIELD_STEP_CYCLES * POLYCC_SHIELD_MAX_STEPS;
+    const uint64_t worst = polycc_app_scene_worst_cycles();
+    uint64_t e;
+    if (avail <= own || worst == 0u) {
         return 0u;
     }
-    e = (avail - POLYCC_SHIELD_FIXED_CYCLES) / worst;
-    return e > POLYCC_SHIELD_MAX_EVALS ? POLYCC_SHIELD_MAX_EVALS : e;
+    e = (avail - own) / worst;
+    return e > POLYCC_SHIELD_MAX_EVALS ? POLYCC_SHIELD_MAX_EVALS : (uint32_t)e;
+}
+
+uint32_t polycc_controller_plan_worst_cycles(void)
+{
+    return POLYCC_SHIELD_FIXED_CYCLES + POLYCC_SHIELD_STEP_CYCLES * POLYCC_SHIELD_MAX_STEPS +
+           polycc_controller_max_evals() * polycc_app_scene_worst_cycles();
 }
 
 static void fillParams(polycc_shield_params_t *q)
 {
-    uint32_t e = polycc_controller_evals_per_tick();
-    uint32_t evals = 1u + e * (POLYCC_SHIELD_PERIOD_TICKS - 2u);
     q->kappa = polycc_app_scene_kappa();
     q->radius = polycc_app_radius();
     q->h = 0.01f;
-    q->k_v = 4.2803f;  /* PID_VEL_X_KP 25 deg per m/s times g (polycc.sim.dynamics.CrazyflieParams) */
+    q->k_v = 4.2803f; /* PID_VEL_X_KP 25 deg per m/s times g (polycc.sim.dynamics.CrazyflieParams) */
     q->k_z = 9.3f;
-    q->a_xy = 3.96f;   /* g tan 22 deg */
-    q->a_up = 11.77f;  /* 1.2 g */
-    q->a_dn = 5.69f;   /* 0.58 g */
+    q->a_xy = 3.96f;  /* g tan 22 deg */
+    q->a_up = 11.77f; /* 1.2 g */
+    q->a_dn = 5.69f;  /* 0.58 g */
     q->tau = 1.0f / 6.0f;
     q->k1 = pK1;
     q->k0 = pK0;
@@ -83,24 +103,24 @@ static void fillParams(polycc_shield_params_t *q)
     q->tube = pTube;
     q->v_term = 0.05f;
     q->a_term = 0.5f;
-    q->n_lat = 3u;   /* 20 ms estimator delay + the 10 ms until the decision is flown */
+    q->n_lat = 3u; /* 20 ms estimator delay + the 10 ms until the decision is flown */
     q->n_commit = 1u;
     q->n_steps = POLYCC_SHIELD_MAX_STEPS;
-    q->max_evals = evals > POLYCC_SHIELD_MAX_EVALS ? POLYCC_SHIELD_MAX_EVALS : evals;
+    q->max_evals = polycc_controller_max_evals();
 }
 
 /* Runtime state only (the parameters keep their values): also on every controller switch. */
 static void resetState(void)
 {
+    memset(&mbox, 0, sizeof mbox);
+    memset(&cur, 0, sizeof cur);
+    memset(&next, 0, sizeof next);
     on = false;
-    planning = false;
-    haveDecision = false;
-    passThrough = false;
     warnedManual = false;
-    memset(uCmd, 0, sizeof uCmd);
-    memset(uPlanned, 0, sizeof uPlanned);
+    warnedSlow = false;
+    lastPlan = 0u;
+    planned = false;
     memset(&trace, 0, sizeof trace);
-    memset(&job, 0, sizeof job);
     lPsi = 0.0f;
     lMinC = 0.0f;
 }
@@ -159,17 +179,124 @@ static void override(setpoint_t *sp, const float u[3])
     trace.overrides += 1u;
 }
 
-/* The finished plan of the last period becomes the decision flown now. */
-static void decide(void)
+static bool near3(const float a[3], const float b[3], float tol)
 {
-    uint32_t f = job.flags;
-    if (!planning) {
+    return fabsf(a[0] - b[0]) <= tol && fabsf(a[1] - b[1]) <= tol && fabsf(a[2] - b[2]) <= tol;
+}
+
+/* ------------------------------------------------------------------ stabilizer side */
+void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float vel[3], const float acc[3],
+                              float yaw_deg, uint32_t tick)
+{
+    static const float zero[3] = {0.0f, 0.0f, 0.0f};
+    float ud[3] = {0.0f, 0.0f, 0.0f};
+    bool manual = !desiredVelocity(sp, pos, yaw_deg, ud), isOn;
+    decision_t d;
+    taskENTER_CRITICAL();
+    memcpy(mbox.pos, pos, sizeof mbox.pos);
+    memcpy(mbox.vel, vel, sizeof mbox.vel);
+    memcpy(mbox.acc, acc, sizeof mbox.acc);
+    memcpy(mbox.ud, ud, sizeof mbox.ud);
+    mbox.tick = tick;
+    mbox.manual = manual;
+    mbox.valid = true;
+    if (next.valid && (int32_t)(tick - next.from) >= 0) { /* the pending decision becomes current */
+        cur = next;
+        next.valid = false;
+    }
+    d = cur;
+    isOn = on;
+    taskEXIT_CRITICAL();
+    if (!isOn) {
         return;
     }
-    planning = false;
-    if (!(f & POLYCC_SHIELD_DONE)) { /* out of ticks: not certified */
-        f |= POLYCC_SHIELD_EVAL_CAP | POLYCC_SHIELD_DONE;
+    if (manual) {
+        if (!warnedManual) {
+            DEBUG_PRINT("shield: manual attitude/rate setpoint passed unfiltered (not protected)\n");
+            warnedManual = true;
+        }
+        trace.manual += 1u;
+        trace.status = POLYCC_SHIELD_STATUS_MANUAL;
+        return;
     }
+    if (!d.valid) { /* just switched on: the first decision is on its way */
+        return;
+    }
+    if ((int32_t)(tick - d.to) >= 0) { /* not replaced in time: the backup */
+        override(sp, zero);
+        return;
+    }
+    if (d.pass && near3(ud, d.planned, POLYCC_SHIELD_PASS_TOL)) {
+        return;
+    }
+    override(sp, d.pass ? d.planned : d.u);
+}
+
+/* ------------------------------------------------------------------ app side */
+static void switchOff(uint8_t status)
+{
+    taskENTER_CRITICAL();
+    on = false;
+    cur.valid = false;
+    next.valid = false;
+    taskEXIT_CRITICAL();
+    planned = false;
+    trace.on = 0u;
+    trace.status = status;
+}
+
+void polycc_controller_plan(uint32_t now)
+{
+    mailbox_t m;
+    decision_t d;
+    const float *uApp;
+    uint32_t f;
+    float speed2;
+    if (!pOn && !on) {
+        trace.status = POLYCC_SHIELD_STATUS_OFF;
+        return;
+    }
+    if (planned && (uint32_t)(now - lastPlan) < POLYCC_SHIELD_PERIOD_TICKS) {
+        return;
+    }
+    if (polycc_controller_max_evals() == 0u) {
+        if (!warnedSlow) {
+            DEBUG_PRINT("shield refused: the scene's worst case (%u cycles) does not fit %u %% of a 10 ms period\n",
+                        (unsigned)polycc_app_scene_worst_cycles(), (unsigned)POLYCC_SHIELD_CPU_SHARE_PERCENT);
+            warnedSlow = true;
+        }
+        switchOff(POLYCC_SHIELD_STATUS_TOO_SLOW);
+        return;
+    }
+    taskENTER_CRITICAL();
+    m = mbox;
+    d = cur;
+    taskEXIT_CRITICAL();
+    if (!m.valid || (uint32_t)(now - m.tick) > 2u * POLYCC_SHIELD_PERIOD_TICKS) {
+        switchOff(POLYCC_SHIELD_STATUS_NO_CONTROLLER); /* the out-of-tree controller does not run */
+        return;
+    }
+    speed2 = (m.vel[0] * m.vel[0] + m.vel[1] * m.vel[1]) + m.vel[2] * m.vel[2];
+    if (!pOn) { /* safe hand-over: only while the shield leaves the setpoint alone, or at rest */
+        if (!d.valid || d.pass || m.manual || speed2 <= 0.05f * 0.05f) {
+            switchOff(POLYCC_SHIELD_STATUS_OFF);
+            return;
+        }
+        trace.status = POLYCC_SHIELD_STATUS_OFF_PENDING;
+    } else if (!on) {
+        on = true;
+        warnedManual = false;
+        trace.status = POLYCC_SHIELD_STATUS_STARTING;
+    }
+    trace.on = 1u;
+    lastPlan = now;
+    planned = true;
+    if (m.manual) {
+        return;
+    }
+    fillParams(&jobPrm);
+    uApp = d.valid && !d.pass ? d.u : m.ud;
+    f = polycc_shield_run(&job, polycc_app_scene(), &jobPrm, m.pos, m.vel, m.acc, uApp, m.ud);
     trace.decisions += 1u;
     trace.last_flags = f;
     trace.last_evals = job.evals;
@@ -183,105 +310,28 @@ static void decide(void)
     if (f & POLYCC_SHIELD_EVAL_CAP) {
         trace.eval_caps += 1u;
     }
-    haveDecision = true;
+    memset(&d, 0, sizeof d);
+    d.valid = true;
+    d.from = m.tick + POLYCC_SHIELD_PERIOD_TICKS;
+    d.to = m.tick + 2u * POLYCC_SHIELD_PERIOD_TICKS;
+    memcpy(d.planned, m.ud, sizeof d.planned);
     if (f & POLYCC_SHIELD_CERTIFIED) {
         trace.certified += 1u;
-        memcpy(uCmd, job.u_c, sizeof uCmd);
-        passThrough = !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED));
-        trace.status = passThrough ? POLYCC_SHIELD_STATUS_PASS : POLYCC_SHIELD_STATUS_FILTERED;
+        memcpy(d.u, job.u_c, sizeof d.u);
+        d.pass = !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED));
+        if (pOn) {
+            trace.status = d.pass ? POLYCC_SHIELD_STATUS_PASS : POLYCC_SHIELD_STATUS_FILTERED;
+        }
     } else {
         trace.backups += 1u;
-        memset(uCmd, 0, sizeof uCmd);
-        passThrough = false;
-        trace.status = POLYCC_SHIELD_STATUS_BACKUP;
-    }
-    memcpy(trace.u, uCmd, sizeof uCmd);
-}
-
-static void switchOff(void)
-{
-    on = false;
-    planning = false;
-    haveDecision = false;
-    passThrough = false;
-    trace.status = POLYCC_SHIELD_STATUS_OFF;
-}
-
-void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float vel[3], const float acc[3],
-                              float yaw_deg, uint32_t tick)
-{
-    const uint32_t phase = tick % POLYCC_SHIELD_PERIOD_TICKS;
-    float ud[3];
-    bool manual;
-    trace.on = on ? 1u : 0u;
-    if (!on && !pOn) {
-        trace.status = POLYCC_SHIELD_STATUS_OFF;
-        return;
-    }
-    if (polycc_controller_evals_per_tick() == 0u) {
-        if (trace.status != POLYCC_SHIELD_STATUS_TOO_SLOW) {
-            DEBUG_PRINT("shield refused: the scene's worst case (%u cycles) does not fit a stabilizer tick\n",
-                        (unsigned)polycc_app_scene_worst_cycles());
-        }
-        switchOff();
-        trace.status = POLYCC_SHIELD_STATUS_TOO_SLOW;
-        return;
-    }
-    manual = !desiredVelocity(sp, pos, yaw_deg, ud);
-    if (phase == 0u) {
-        float speed2 = (vel[0] * vel[0] + vel[1] * vel[1]) + vel[2] * vel[2];
-        if (on) {
-            decide();
-        }
-        if (!pOn && on) { /* safe hand-over: only while the shield leaves the setpoint alone, or at rest */
-            if (!haveDecision || passThrough || speed2 <= 0.05f * 0.05f || manual) {
-                switchOff();
-                return;
-            }
-        }
-        if (pOn && !on) {
-            on = true;
-            haveDecision = false;
-            warnedManual = false;
-        }
-        if (!manual) {
-            const float *uApp = haveDecision && !passThrough ? uCmd : ud;
-            fillParams(&jobPrm);
-            (void)polycc_shield_begin(&job, polycc_app_scene(), &jobPrm, pos, vel, acc, uApp, ud);
-            memcpy(uPlanned, ud, sizeof uPlanned);
-            planning = true;
-        }
-    } else if (planning && phase == 1u) {
-        (void)polycc_shield_simulate(&job, &jobPrm);
-    } else if (planning) {
-        uint32_t k, e = polycc_controller_evals_per_tick();
-        for (k = 0u; k < e && !(job.flags & POLYCC_SHIELD_DONE); ++k) {
-            (void)polycc_shield_advance(&job, polycc_app_scene(), &jobPrm);
+        if (pOn) {
+            trace.status = POLYCC_SHIELD_STATUS_BACKUP;
         }
     }
-    trace.on = 1u;
-    if (manual) {
-        if (!warnedManual) {
-            DEBUG_PRINT("shield: manual attitude/rate setpoint passed unfiltered (not protected)\n");
-            warnedManual = true;
-        }
-        trace.manual += 1u;
-        trace.status = POLYCC_SHIELD_STATUS_MANUAL;
-        haveDecision = false;
-        return;
-    }
-    if (!haveDecision) {
-        trace.status = POLYCC_SHIELD_STATUS_STARTING;
-        return;
-    }
-    if (!pOn) {
-        trace.status = POLYCC_SHIELD_STATUS_OFF_PENDING;
-    }
-    if (passThrough && fabsf(ud[0] - uPlanned[0]) <= POLYCC_SHIELD_PASS_TOL &&
-        fabsf(ud[1] - uPlanned[1]) <= POLYCC_SHIELD_PASS_TOL && fabsf(ud[2] - uPlanned[2]) <= POLYCC_SHIELD_PASS_TOL) {
-        return;
-    }
-    override(sp, passThrough ? uPlanned : uCmd);
+    memcpy(trace.u, d.u, sizeof d.u);
+    taskENTER_CRITICAL();
+    next = d;
+    taskEXIT_CRITICAL();
 }
 
 #ifdef CONFIG_CONTROLLER_OOT

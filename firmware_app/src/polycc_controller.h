@@ -5,22 +5,26 @@
  *
  * No firmware headers here (shared with the host build).  World frame, z up; m, s, m/s.
  *
- * Every 1 kHz stabilizer tick controllerOutOfTree() (polycc_controller.c) calls
- * polycc_controller_filter() on the commander's setpoint, then controllerPid() on the result.
- * Decisions are made at 100 Hz (POLYCC_SHIELD_PERIOD_TICKS, the PID position loop's rate); the work
- * of one decision is spread over the 10 ticks of its period (docs/barrier.md section 8):
- *   tick 0: decide from the finished plan, then polycc_shield_begin (psi at the estimate, candidate);
- *   tick 1: polycc_shield_simulate (closed-loop model, no psi evaluation);
- *   ticks 2-9: up to POLYCC_SHIELD_EVALS_PER_TICK psi evaluations each.
- * The decision made at tick 0 of period k is flown during period k: certified -> the candidate
- * (the setpoint passes unchanged when the candidate is the desired velocity), otherwise the
- * backup u = 0 (brake to hover).  Setpoints the shield changes become world-frame velocity
- * setpoints (yaw fields kept).  Manual attitude/rate setpoints (x, y or z mode disabled) pass
- * unfiltered: status manual, counted, one warning per switch-on.
+ * Two halves (docs/barrier.md section 8, "Rate and slot"):
+ *   stabilizer task, every 1 kHz tick: controllerOutOfTree() -> polycc_controller_filter() posts the
+ *     commander's setpoint (as a desired velocity) and the estimate to a mailbox, applies the
+ *     current decision, then controllerPid() runs on the result.  O(1): no psi evaluation.
+ *   app task, every app tick: polycc_controller_plan() makes a decision every
+ *     POLYCC_SHIELD_PERIOD_TICKS (100 Hz, the PID position loop's rate) from the mailbox: one full
+ *     polycc_shield_run() with as many psi evaluations as the scene's certified worst case fits in
+ *     POLYCC_SHIELD_CPU_SHARE_PERCENT of the period.  The app task is preemptible, so a plan never
+ *     delays the 1 kHz loop.
+ * A decision planned from the estimate of tick t0 is flown from t0 + 10 to t0 + 20 (the model's
+ * latency and commit, n_lat = 3, n_commit = 1 steps of 10 ms): certified -> the candidate (the
+ * setpoint passes unchanged when the candidate is the desired velocity), otherwise the backup
+ * u = 0 (brake to hover); a decision that is not replaced in time expires into the backup.
+ * Setpoints the shield changes become world-frame velocity setpoints (yaw fields kept).  Manual
+ * attitude/rate/thrust setpoints (x, y or z mode disabled) pass unfiltered: status manual,
+ * counted, one warning per switch-on.
  *
- * Param polyccShield.enable switches the shield; on: the first decision is ready after one period
- * (status starting: setpoints pass meanwhile); off: deferred (status off-pending) while the
- * shield is changing the setpoint, until it passes one unchanged or the vehicle is at rest.
+ * Param polyccShield.enable switches the shield; on: the first decision is flown one to two
+ * periods later (status starting: setpoints pass meanwhile); off: deferred (status off-pending)
+ * while the shield changes the setpoint, until it passes one unchanged or the vehicle is at rest.
  */
 #ifndef POLYCC_CONTROLLER_H
 #define POLYCC_CONTROLLER_H
@@ -38,15 +42,15 @@
 #define POLYCC_SHIELD_STATUS_OFF_PENDING 5u /* enable = 0 while the shield changes the setpoint: still on */
 #define POLYCC_SHIELD_STATUS_TOO_SLOW 6u    /* the scene's worst case does not fit a stabilizer tick: refused */
 #define POLYCC_SHIELD_STATUS_STARTING 7u    /* just switched on: the first plan is being computed, setpoints pass */
-#define POLYCC_SHIELD_STATUS_COUNT 8u
+#define POLYCC_SHIELD_STATUS_NO_CONTROLLER 8u /* enabled, but stabilizer.controller is not the out-of-tree one */
+#define POLYCC_SHIELD_STATUS_COUNT 9u
 
 #define POLYCC_SHIELD_PERIOD_TICKS 10u /* 100 Hz decisions at the 1 kHz stabilizer tick */
-/* Share of one 1 ms stabilizer tick (168 000 cycles) the shield may use, percent. */
-#define POLYCC_SHIELD_TICK_SHARE_PERCENT 50u
-/* Cycle model of the shield's own work (polycc/budget/cycle_model.py shield_*). */
-#define POLYCC_SHIELD_FIXED_CYCLES 4000u     /* setpoint decoding, decision, bookkeeping per tick */
-#define POLYCC_SHIELD_STEP_CYCLES 160u       /* one model step of polycc_shield_simulate */
-#define POLYCC_SHIELD_COVER_CYCLES 24u       /* one step of the coverage walk */
+/* Share of the CPU over one period (10 ms = 1 680 000 cycles) a plan may use, percent. */
+#define POLYCC_SHIELD_CPU_SHARE_PERCENT 25u
+/* Cycle model of the plan's own work besides psi (polycc/budget/cycle_model.py shield_plan_cycles). */
+#define POLYCC_SHIELD_FIXED_CYCLES 4000u /* mailbox, candidate, decision, bookkeeping */
+#define POLYCC_SHIELD_STEP_CYCLES 200u   /* one model step plus its share of the coverage walk */
 
 /* Defaults of the polyccShield parameter group. */
 #define POLYCC_SHIELD_DEFAULT_TUBE 0.05f  /* m: model-tracking allowance e_tube */
@@ -63,13 +67,17 @@
 
 /* Resets the shield (off) and its parameters to the defaults. */
 void polycc_controller_init(void);
-/* The filter: replaces *sp by what the PID gets this tick.  pos/vel/acc: the estimate (m, m/s,
- * m/s^2), yaw_deg its heading; tick: the stabilizer step (1 kHz). */
+/* Stabilizer side: replaces *sp by what the PID gets this tick.  pos/vel/acc: the estimate (m,
+ * m/s, m/s^2), yaw_deg its heading; tick: the stabilizer step (1 kHz, = FreeRTOS ticks). */
 struct setpoint_s;
 void polycc_controller_filter(struct setpoint_s *sp, const float pos[3], const float vel[3], const float acc[3],
                               float yaw_deg, uint32_t tick);
-/* psi evaluations per stabilizer tick the scene's worst case allows (0: the shield is refused). */
-uint32_t polycc_controller_evals_per_tick(void);
+/* App side: plans a decision when one is due (call every app tick; now = FreeRTOS tick). */
+void polycc_controller_plan(uint32_t now);
+/* psi evaluations per plan the scene's certified worst case allows (0: the shield is refused). */
+uint32_t polycc_controller_max_evals(void);
+/* Certified worst case of one plan, Cortex-M4 cycles (cycle model; <= the period's share). */
+uint32_t polycc_controller_plan_worst_cycles(void);
 
 /* Counters and the last decision (log group polyccShield; for tests and the SITL). */
 typedef struct polycc_controller_trace {
