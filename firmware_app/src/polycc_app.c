@@ -406,11 +406,6 @@ float polycc_app_scene_kappa(void)
     return POLYCC_SCENE_KAPPA;
 }
 
-float polycc_app_radius(void)
-{
-    return pRadius;
-}
-
 const polycc_app_trace_t *polycc_app_trace(void)
 {
     return &trace;

@@ -33,6 +33,7 @@
 static uint8_t pOn;
 static float pTube = POLYCC_SHIELD_DEFAULT_TUBE, pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
 static float pK1 = POLYCC_SHIELD_DEFAULT_K1, pK0 = POLYCC_SHIELD_DEFAULT_K0;
+static float pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
 
 /* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
 typedef struct mailbox {
@@ -89,7 +90,7 @@ uint32_t polycc_controller_plan_worst_cycles(void)
 static void fillParams(polycc_shield_params_t *q)
 {
     q->kappa = polycc_app_scene_kappa();
-    q->radius = polycc_app_radius();
+    q->radius = pRadius;
     q->h = 0.01f;
     q->k_v = 4.2803f; /* PID_VEL_X_KP 25 deg per m/s times g (polycc.sim.dynamics.CrazyflieParams) */
     q->k_z = 9.3f;
@@ -132,6 +133,7 @@ void polycc_controller_init(void)
     pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
     pK1 = POLYCC_SHIELD_DEFAULT_K1;
     pK0 = POLYCC_SHIELD_DEFAULT_K0;
+    pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
     resetState();
 }
 
@@ -366,6 +368,8 @@ PARAM_GROUP_START(polyccShield)
 /** @brief Nonzero: filter every setpoint (needs stabilizer.controller = out-of-tree); 0: off, after a safe
  * hand-over (default 0) */
 PARAM_ADD(PARAM_UINT8, enable, &pOn)
+/** @brief Agent radius r the shield keeps clear, m (default 0.1) */
+PARAM_ADD(PARAM_FLOAT, radius, &pRadius)
 /** @brief Model-tracking allowance e_tube, m (default 0.05) */
 PARAM_ADD(PARAM_FLOAT, tube, &pTube)
 /** @brief Speed cap of the filtered command, m/s (default 3) */

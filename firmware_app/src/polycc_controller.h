@@ -57,7 +57,7 @@
 #define POLYCC_SHIELD_DEFAULT_VMAX 3.0f   /* m/s: speed cap of the candidate */
 #define POLYCC_SHIELD_DEFAULT_K1 4.0f     /* 1/s */
 #define POLYCC_SHIELD_DEFAULT_K0 4.0f     /* 1/s^2 */
-#define POLYCC_SHIELD_DEFAULT_RADIUS 0.1f /* m, as polycc.radius */
+#define POLYCC_SHIELD_DEFAULT_RADIUS 0.1f /* m: polyccShield.radius, the shield's own (polycc.radius is the app's) */
 /* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
 #define POLYCC_SHIELD_POS_KP 2.0f
 #define POLYCC_SHIELD_POS_VMAX 1.0f

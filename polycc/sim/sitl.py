@@ -59,6 +59,7 @@ class FlightConfig:
     switch_tol_m: float = 0.05  # waypoint following: next waypoint within this distance of the current one
     shield: bool = False  # fly the out-of-tree controller with polyccShield.enable = 1 (the shield filters the app)
     shield_tube: float | None = None  # m, polyccShield.tube (default: the app's)
+    shield_radius: float | None = None  # m, polyccShield.radius (default: clearance_radius, else radius)
 
     def params(self, kappa: float) -> Params:
         return Params(kappa=kappa, radius=self.radius, beta=self.beta, c_clf=self.clf_gain, v_max=self.vmax)
@@ -142,6 +143,9 @@ class Simulator:
             app.set_param("polyccShield", "enable", 1)
             if cfg.shield_tube is not None:
                 app.set_param("polyccShield", "tube", cfg.shield_tube)
+            r_sh = cfg.shield_radius if cfg.shield_radius is not None else (
+                cfg.clearance_radius if cfg.clearance_radius is not None else cfg.radius)
+            app.set_param("polyccShield", "radius", r_sh)
         gaps: list[float] = []
         accs: list[np.ndarray] = []
         for name, val in (("vmax", cfg.vmax), ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),

@@ -36,7 +36,7 @@ def _model(header, dynamics="crazyflie", shield=True, start=(0.0, 0.0, 1.0)) -> 
     if shield:
         m.app.set_param("stabilizer", "controller", int(lib.ControllerTypeOot))
         m.app.set_param("polyccShield", "enable", 1)
-    m.app.set_param("polycc", "radius", R)
+    m.app.set_param("polyccShield", "radius", R)
     return m
 
 
