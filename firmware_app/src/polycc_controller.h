@@ -50,7 +50,7 @@
 #define POLYCC_SHIELD_CPU_SHARE_PERCENT 25u
 /* Cycle model of the plan's own work besides psi (polycc/budget/cycle_model.py shield_plan_cycles). */
 #define POLYCC_SHIELD_FIXED_CYCLES 4000u /* mailbox, candidate, decision, bookkeeping */
-#define POLYCC_SHIELD_STEP_CYCLES 200u   /* one model step plus its share of the coverage walk */
+#define POLYCC_SHIELD_STEP_CYCLES 260u   /* one model step plus its share of the coverage walk (measured 236) */
 
 /* Defaults of the polyccShield parameter group. */
 #define POLYCC_SHIELD_DEFAULT_TUBE 0.05f  /* m: model-tracking allowance e_tube */

@@ -136,12 +136,18 @@ def test_enabled_without_the_out_of_tree_controller_says_so(header):
     assert _trace(m).status == STATUS["no_controller"] and _trace(m).decisions == 0
 
 
-def test_plan_budget_matches_the_scene(header):
+def test_plan_budget_matches_the_cycle_model(header):
+    from polycc.budget import cycle_model as CM
+
     m = _model(header)
     lib = m.app.lib
+    assert (int(lib.POLYCC_SHIELD_FIXED_CYCLES), int(lib.POLYCC_SHIELD_STEP_CYCLES), int(lib.POLYCC_SHIELD_PERIOD_TICKS),
+            int(lib.POLYCC_SHIELD_CPU_SHARE_PERCENT)) == (CM.SHIELD_FIXED_CYCLES, CM.SHIELD_STEP_CYCLES,
+                                                         CM.SHIELD_PERIOD_TICKS, CM.SHIELD_CPU_SHARE_PERCENT)
+    assert (S.MAX_STEPS, S.MAX_EVALS) == (CM.SHIELD_MAX_STEPS, CM.SHIELD_MAX_EVALS)
     worst = int(lib.polycc_app_scene_worst_cycles())
-    e = int(lib.polycc_controller_max_evals())
-    avail = 168_000 * 10 * 25 // 100
-    own = int(lib.POLYCC_SHIELD_FIXED_CYCLES) + int(lib.POLYCC_SHIELD_STEP_CYCLES) * S.MAX_STEPS
-    assert e == min(S.MAX_EVALS, (avail - own) // worst)
-    assert int(lib.polycc_controller_plan_worst_cycles()) <= avail
+    assert int(lib.polycc_controller_max_evals()) == CM.shield_max_evals(worst) >= 1
+    assert int(lib.polycc_controller_plan_worst_cycles()) == CM.shield_plan_cycles(worst) <= 168_000 * 10 // 4
+    for w in (10_000, 115_470, 200_000, 400_000):  # the demo arena at 8 KiB: 115 470 cycles -> 3 evaluations
+        assert CM.shield_plan_cycles(w) <= 420_000
+    assert CM.shield_max_evals(115_470) == 3 and CM.shield_max_evals(400_000) == 0
