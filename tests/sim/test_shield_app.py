@@ -141,9 +141,9 @@ def test_plan_budget_matches_the_cycle_model(header):
 
     m = _model(header)
     lib = m.app.lib
-    assert (int(lib.POLYCC_SHIELD_FIXED_CYCLES), int(lib.POLYCC_SHIELD_STEP_CYCLES), int(lib.POLYCC_SHIELD_PERIOD_TICKS),
-            int(lib.POLYCC_SHIELD_CPU_SHARE_PERCENT)) == (CM.SHIELD_FIXED_CYCLES, CM.SHIELD_STEP_CYCLES,
-                                                         CM.SHIELD_PERIOD_TICKS, CM.SHIELD_CPU_SHARE_PERCENT)
+    c = tuple(int(getattr(lib, f"POLYCC_SHIELD_{k}")) for k in ("FIXED_CYCLES", "STEP_CYCLES", "PERIOD_TICKS",
+                                                                 "CPU_SHARE_PERCENT"))
+    assert c == (CM.SHIELD_FIXED_CYCLES, CM.SHIELD_STEP_CYCLES, CM.SHIELD_PERIOD_TICKS, CM.SHIELD_CPU_SHARE_PERCENT)
     assert (S.MAX_STEPS, S.MAX_EVALS) == (CM.SHIELD_MAX_STEPS, CM.SHIELD_MAX_EVALS)
     worst = int(lib.polycc_app_scene_worst_cycles())
     assert int(lib.polycc_controller_max_evals()) == CM.shield_max_evals(worst) >= 1
