@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -95,8 +95,16 @@ def main() -> int:
     jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m}
             for d in args.dynamics.split(",") for s in args.speeds.split(",") for m in ("app", "shield")]
     t0 = time.perf_counter()
+    rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        rows = list(ex.map(fly_cell, jobs))
+        futs = {ex.submit(fly_cell, j): i for i, j in enumerate(jobs)}
+        for f in as_completed(futs):  # partial results are kept as cells finish
+            rows.append((futs[f], f.result()))
+            write_json("shield", {"pairs": args.pairs, "budget": budget, "partial": len(rows) < len(jobs),
+                                  "rows": [r for _, r in sorted(rows, key=lambda t: t[0])],
+                                  "wall_s": time.perf_counter() - t0})
+            print(f"cell {len(rows)}/{len(jobs)} done", flush=True)
+    rows = [r for _, r in sorted(rows, key=lambda t: t[0])]
     head = ["model", "v m/s", "mode", "goal", "coll.", "min clr m", "gap p1", "gap p50", "gap p99", "jerk rms",
             "jerk p99", "t goal s", "infeas./fl", "backup/fl", "dec./fl"]
     table = [[r["dynamics"], r["speed"], r["mode"], f"{r['goal']}/{r['flights']}", r["collisions"],
