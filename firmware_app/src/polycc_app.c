@@ -44,6 +44,7 @@
 #include "debug.h"
 
 #include "polycc_app.h"
+#include "polycc_controller.h"
 #include "polycc_kernel.h"
 
 /* The generated scene: -DPOLYCC_SCENE_HEADER='"/abs/path/polytopes.h"' or polytopes.h on the include path. */
@@ -386,6 +387,23 @@ void polycc_app_init(void)
     haveVariance = logVarIdIsValid(idVarX) && logVarIdIsValid(idVarY) && logVarIdIsValid(idVarZ);
     memset(&trace, 0, sizeof trace);
     (void)periodTicks(pRateHz);
+    polycc_controller_init(); /* shield (polycc_controller.c): off, defaults */
+}
+
+/* ---- shield hooks (polycc_controller.h) ---- */
+const polycc_scene_t *polycc_app_scene(void)
+{
+    return &polycc_scene;
+}
+
+uint32_t polycc_app_scene_worst_cycles(void)
+{
+    return (uint32_t)POLYCC_SCENE_WORST_CYCLES;
+}
+
+float polycc_app_scene_kappa(void)
+{
+    return POLYCC_SCENE_KAPPA;
 }
 
 const polycc_app_trace_t *polycc_app_trace(void)
@@ -420,7 +438,11 @@ static uint8_t mayTakeControl(void)
     if (supervisorIsLocked() || supervisorIsCrashed() || supervisorIsTumbled()) {
         return POLYCC_STATUS_SUPERVISOR;
     }
-    if (controllerGetType() != ControllerTypePID) {
+    if (controllerGetType() != ControllerTypePID
+#ifdef CONFIG_CONTROLLER_OOT
+        && controllerGetType() != ControllerTypeOot /* the shield's controller wraps the PID */
+#endif
+    ) {
         return POLYCC_STATUS_BAD_CONTROLLER;
     }
     if (engaged) {
@@ -456,13 +478,15 @@ uint32_t polycc_app_tick(void)
     uint32_t period = periodTicks(pRateHz);
 
     serviceAppChannel();
+    polycc_controller_plan((uint32_t)xTaskGetTickCount()); /* shield (polycc_controller.c): a decision when due */
     if (pEnable == 0u) {
         if (engaged) {
             handOverHold();
         }
         if (!engaged) {
             idle(linkLostLatched ? POLYCC_STATUS_LINK_LOST : POLYCC_STATUS_DISABLED);
-            return period;
+            /* idle: no kernel call here, so the shield's 100 Hz planning sets the pace */
+            return period > POLYCC_SHIELD_PERIOD_TICKS ? POLYCC_SHIELD_PERIOD_TICKS : period;
         }
         lStatus = POLYCC_STATUS_DISABLED; /* the high-level commander refused: still holding */
         holdPosition(0);

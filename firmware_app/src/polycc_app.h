@@ -101,6 +101,11 @@
  * (float, m, the estimate). */
 #define POLYCC_APP_REPLY_BYTES 18u
 
+/* ---- for the shield (polycc_controller.c): the scene this app was built with ---- */
+const polycc_scene_t *polycc_app_scene(void);
+uint32_t polycc_app_scene_worst_cycles(void); /* POLYCC_SCENE_WORST_CYCLES of polytopes.h */
+float polycc_app_scene_kappa(void);
+
 /* Resets the app's state and parameters to their defaults and looks up the log variables. */
 void polycc_app_init(void);
 /* One iteration of the control loop; returns the delay (FreeRTOS ticks, >= 1) until the next. */

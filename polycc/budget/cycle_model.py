@@ -92,3 +92,31 @@ def estimate_us(packed: PackedScene, kappa: float = 100.0, samples: int = 400, s
         free[:] = True
     typ = state_cycles(packed, params, x[free])
     return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6), "worst_us": float(worst_cycles(packed) / CPU_HZ * 1e6)}
+
+
+# The shield's plan (firmware_app/src/polycc_controller.[ch], docs/barrier.md section 8): one
+# polycc_shield_run per 10 ms period in the app task, as many psi evaluations as fit its CPU share.
+# SHIELD_STEP_CYCLES: polycc_shield_simulate over 200 saturated steps ran 41 980-47 223 cycles in
+# bench/bench_kernel.py's Cortex-M4 model (unicorn + timing table), plus the coverage walk
+# (~20 cycles per step): 236 per step, rounded up to 260.
+SHIELD_PERIOD_TICKS = 10
+SHIELD_CPU_SHARE_PERCENT = 25
+SHIELD_FIXED_CYCLES = 4000
+SHIELD_STEP_CYCLES = 260
+SHIELD_MAX_STEPS = 200
+SHIELD_MAX_EVALS = 32
+
+
+def shield_max_evals(scene_worst_cycles: int) -> int:
+    """psi evaluations per plan (``polycc_controller_max_evals``); 0: the shield is refused."""
+    avail = int(CPU_HZ) // 1000 * SHIELD_PERIOD_TICKS * SHIELD_CPU_SHARE_PERCENT // 100
+    own = SHIELD_FIXED_CYCLES + SHIELD_STEP_CYCLES * SHIELD_MAX_STEPS
+    if avail <= own or scene_worst_cycles <= 0:
+        return 0
+    return min(SHIELD_MAX_EVALS, (avail - own) // int(scene_worst_cycles))
+
+
+def shield_plan_cycles(scene_worst_cycles: int) -> int:
+    """Certified worst case of one plan, cycles (``polycc_controller_plan_worst_cycles``)."""
+    return (SHIELD_FIXED_CYCLES + SHIELD_STEP_CYCLES * SHIELD_MAX_STEPS
+            + shield_max_evals(scene_worst_cycles) * int(scene_worst_cycles))

@@ -78,6 +78,10 @@ def register(subparsers) -> None:
     p.add_argument("--t-max", type=number(float, 0.0, 1e5, lo_open=True, unit="s"), default=None, metavar="S",
                    help="time limit per flight, s (default: 2 * distance / vmax + 10)")
     p.add_argument("--plot", metavar="FILE.png", help="trajectory plot (default: OUT/trajectories.png)")
+    p.add_argument("--shield", action="store_true",
+                   help="fly the shield too: stabilizer.controller = out-of-tree, polyccShield.enable = 1 (every "
+                        "setpoint of the app through the velocity-aware backup CBF, docs/barrier.md section 8; "
+                        "polyccShield.radius = --radius)")
     p.add_argument("--plan", action="store_true",
                    help="plan each flight through the certified free space first (as `polycc plan`, at --radius) and "
                         "fly its waypoints: the app's goal switches to the next waypoint within --margin of the "
@@ -138,7 +142,7 @@ def run(args) -> int:
     with console.status("building the app for this machine"):
         sim = Simulator(header, scene.ellipsoids)
     cfg = FlightConfig(rate_hz=args.rate_hz, vmax=args.vmax, beta=args.beta, clf_gain=args.clf_gain,
-                       radius=args.radius, t_max_s=args.t_max)
+                       radius=args.radius, t_max_s=args.t_max, shield=args.shield)
     delay = None if args.delay_ms is None else args.delay_ms * 1e-3
 
     if args.random_pairs:
@@ -217,6 +221,8 @@ def run(args) -> int:
                    for i, t in zip(flown, trials)],
         "success_rate": n_ok / len(trials), "collisions": collisions, "min_clearance_m": min_clear,
     }
+    if args.shield:
+        summary["shield"] = {k: int(sum(t.shield[k] for t in trials)) for k in trials[0].shield}
     if args.plan:
         summary["plan"] = {"margin_m": args.margin, "grid_m": args.grid, "switch_tolerance_m": args.margin,
                            "no_path": [{"pair": i + 1, "start": pairs[i][0].tolist(), "goal": pairs[i][1].tolist(),
@@ -233,4 +239,8 @@ def run(args) -> int:
     console.print(f"summary: {len(trials)} trials, success {n_ok}/{len(trials)} ({100.0 * n_ok / len(trials):.0f}%), "
                   f"collisions: {collisions}, min clearance {min_clear:.4f} m, "
                   f"max evalUs {max(t.max_eval_us for t in trials)}, {time.perf_counter() - t0:.1f} s", soft_wrap=True)
+    if args.shield:
+        sh = summary["shield"]
+        console.print(f"shield: {sh['decisions']} decisions, {sh['certified']} certified, {sh['backups']} backups "
+                      f"(braking), {sh['infeasible']} infeasible, {sh['manual']} manual ticks", soft_wrap=True)
     return 1 if collisions else 0

@@ -43,9 +43,10 @@ from polycc.sim.kernel_ffi import build_cffi
 
 SRC = resources.firmware_src()
 SHIMS = resources.shims()
-APP_SOURCES = [SRC / "polycc_app.c", SRC / "polycc_kernel.c"]
+APP_SOURCES = [SRC / "polycc_app.c", SRC / "polycc_kernel.c", SRC / "polycc_shield.c", SRC / "polycc_controller.c"]
 SHIM_SOURCES = sorted(SHIMS.glob("sim_*.c"))
-HEADERS = [SRC / "polycc_app.h", SRC / "polycc_kernel.h", SRC / "polycc_scene_layout.h"] + sorted(SHIMS.glob("*.h"))
+HEADERS = [SRC / "polycc_app.h", SRC / "polycc_kernel.h", SRC / "polycc_scene_layout.h", SRC / "polycc_shield.h",
+           SRC / "polycc_controller.h"] + sorted(SHIMS.glob("*.h"))
 # The firmware's flags that matter for code generation and warnings (tools/kbuild/Makefile.kbuild:
 # -std=gnu11 -Wall -Wdouble-promotion, -Os -Werror in release, -fno-math-errno), the kernel's
 # -ffp-contract=off, plus -Wextra on the host.
@@ -55,8 +56,13 @@ HOST_CFLAGS = ["-O2", *FIRMWARE_WARN_FLAGS, "-Wextra", "-DPOLYCC_SHIM_HOST=1"]
 
 # The shims' C API, the kernel's and the app's types and constants, all from their headers; then
 # the constants of the generated header and the host-only glue below.
+# The firmware types the controller API passes on (opaque here, as in the shims).
+_OPAQUE = ("typedef struct state_s state_t;\ntypedef struct control_s control_t;\n"
+           "typedef struct sensorData_s sensorData_t;\ntypedef uint32_t stabilizerStep_t;\n"
+           "typedef struct setpoint_s setpoint_t;\n")
 CDEF = headers_cdef(SHIMS / "polycc_shim.h", SRC / "polycc_scene_layout.h", SRC / "polycc_kernel.h",
-                    SRC / "polycc_app.h") + "typedef struct state_s state_t;\n" + headers_cdef(
+                    SRC / "polycc_app.h", SRC / "polycc_shield.h", SRC / "polycc_controller.h") + _OPAQUE + \
+    headers_cdef(
     SHIMS / "crtp_commander_high_level.h", SHIMS / "supervisor.h", SHIMS / "controller.h", SHIMS / "crtp.h") + """
 float polycc_host_brake_acc(void);
 #define POLYCC_SCENE_N_POLYS ...
@@ -75,6 +81,7 @@ GLUE = """
 #include "crtp_commander_high_level.h"
 #include "supervisor.h"
 #include "polycc_app.h"
+#include "polycc_controller.h"
 #include "polycc_scene_layout.h"
 #include "polytopes.h"
 float polycc_host_scene_kappa(void) { return POLYCC_SCENE_KAPPA; }

@@ -57,6 +57,9 @@ class FlightConfig:
     record_app_io: bool = False  # keep what the app saw and sent, tick by tick
     floor_z: float = -1e3  # m: the floor the vehicle rests on (default: far below the scene)
     switch_tol_m: float = 0.05  # waypoint following: next waypoint within this distance of the current one
+    shield: bool = False  # fly the out-of-tree controller with polyccShield.enable = 1 (the shield filters the app)
+    shield_tube: float | None = None  # m, polyccShield.tube (default: the app's)
+    shield_radius: float | None = None  # m, polyccShield.radius (default: clearance_radius, else radius)
 
     def params(self, kappa: float) -> Params:
         return Params(kappa=kappa, radius=self.radius, beta=self.beta, c_clf=self.clf_gain, v_max=self.vmax)
@@ -80,6 +83,9 @@ class Trial:
     impact_speed_ms: float = 0.0  # fastest touchdown on the floor, m/s (0: none)
     waypoints: np.ndarray | None = None  # the plan flown (k, 3) m, waypoints[0] = start, or None
     reached: int = 0  # waypoints after the start the vehicle switched past or arrived at
+    shield: dict | None = None  # the shield's counters (polycc_controller_trace_t) when cfg.shield
+    rate_gap: np.ndarray | None = None  # per app tick: grad psi . (v_true - u_commanded), m/s (Prop. 1 of seed 001)
+    jerk: np.ndarray | None = None  # |da/dt| of the true vehicle at 100 Hz, m/s^3
 
     @property
     def length_ratio(self) -> float:
@@ -132,6 +138,16 @@ class Simulator:
         pos32 = ffi.new("float[3]")
         vel32 = ffi.new("float[3]")
         set_goal(targets[0])
+        if cfg.shield:
+            lib.shim_set_controller(lib.ControllerTypeOot)
+            app.set_param("polyccShield", "enable", 1)
+            if cfg.shield_tube is not None:
+                app.set_param("polyccShield", "tube", cfg.shield_tube)
+            r_sh = cfg.shield_radius if cfg.shield_radius is not None else (
+                cfg.clearance_radius if cfg.clearance_radius is not None else cfg.radius)
+            app.set_param("polyccShield", "radius", r_sh)
+        gaps: list[float] = []
+        accs: list[np.ndarray] = []
         for name, val in (("vmax", cfg.vmax), ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),
                           ("rateHz", cfg.rate_hz), ("enable", 1)):
             app.set_param("polycc", name, val)
@@ -181,9 +197,22 @@ class Simulator:
                     io["out_psi"].append(tr.out.psi)
                     io["out_flags"].append(tr.out.flags)
                     io["goal_t"].append(targets[min(current, len(targets) - 1)])
-            pos32[0:3] = veh.p.tolist()
-            vel32[0:3] = veh.v.tolist()
+            if cfg.shield:  # the firmware's controller sees the estimate (and the model's acceleration)
+                pe, ve = veh.estimate()
+                pos32[0:3] = pe.tolist()
+                vel32[0:3] = ve.tolist()
+                acc = getattr(veh.model, "a", np.zeros(3))
+                lib.shim_set_acceleration(float(acc[0]), float(acc[1]), float(acc[2]))
+            else:
+                pos32[0:3] = veh.p.tolist()
+                vel32[0:3] = veh.v.tolist()
             lib.shim_stabilizer_step(pos32, vel32, 0.0, sp)
+            if tick % 10 == 0:
+                accs.append(np.array(getattr(veh.model, "a", np.zeros(3)), np.float64))
+                if sp.mode_x == 2 and sp.mode_y == 2 and sp.mode_z == 2:
+                    g = lib.polycc_app_trace().out.grad
+                    dv = veh.v - np.array([sp.vx, sp.vy, sp.vz])
+                    gaps.append(float(g[0] * dv[0] + g[1] * dv[1] + g[2] * dv[2]))
             veh.step(sp, 1e-3)
             t = tick * 1e-3
             if tick >= next_app - 1:  # sample the path once per app period
@@ -212,6 +241,13 @@ class Simulator:
                       waypoints=None if waypoints is None else np.asarray(waypoints, np.float64).reshape(-1, 3),
                       reached=current)
         trial.impact_speed_ms = veh.impact_speed_ms
+        trial.rate_gap = np.asarray(gaps, np.float64)
+        A = np.asarray(accs, np.float64).reshape(-1, 3)
+        trial.jerk = np.linalg.norm(np.diff(A, axis=0), axis=1) / 0.01 if len(A) > 1 else np.zeros(0)
+        if cfg.shield:
+            tr = lib.polycc_controller_trace()
+            keys = ("decisions", "certified", "backups", "infeasible", "manual", "eval_caps", "overrides")
+            trial.shield = {k: int(getattr(tr, k)) for k in keys}
         if io is not None:
             f3 = lambda k: np.asarray(io[k], np.float32).reshape(-1, 3)  # noqa: E731
             trial.io = {"x_seen": f3("x_seen"), "u": f3("u"),

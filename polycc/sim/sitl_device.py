@@ -280,8 +280,15 @@ class SitlDeviceModel(DeviceModel):
                 if n == 0:
                     break
                 self._outgoing.append(bytes(self.app.ffi.buffer(self._app_buf, n)))
-        self._pos[0:3] = self.dyn.p.tolist()
-        self._vel[0:3] = self.dyn.v.tolist()
+        if lib.controllerGetType() == lib.ControllerTypeOot:  # the shield's controller sees the estimate
+            pe, ve = self.dyn.estimate()
+            acc = getattr(self.dyn.model, "a", np.zeros(3)) if self.dyn.motors_on else np.zeros(3)
+            lib.shim_set_acceleration(float(acc[0]), float(acc[1]), float(acc[2]))
+            self._pos[0:3] = pe.tolist()
+            self._vel[0:3] = ve.tolist()
+        else:
+            self._pos[0:3] = self.dyn.p.tolist()
+            self._vel[0:3] = self.dyn.v.tolist()
         lib.shim_stabilizer_step(self._pos, self._vel, 0.0, self._sp)
         self.u = velocity_command(self._sp, self.dyn.p, self.dyn.v) if self._sp.motors_on else np.zeros(3)
         self.dyn.step(self._sp, 1e-3)

@@ -54,7 +54,7 @@ def test_host_compile_with_firmware_flags(scene_dir, tmp_path, host_tables):
 def test_arm_compile_against_shims_and_size(scene_dir, tmp_path):
     _arm_or_skip()
     sizes = {}
-    for src in (SRC / "polycc_app.c", SRC / "polycc_kernel.c"):
+    for src in (SRC / "polycc_app.c", SRC / "polycc_kernel.c", SRC / "polycc_shield.c", SRC / "polycc_controller.c"):
         obj = tmp_path / (src.stem + ".o")
         r = _compile("arm-none-eabi-gcc", ARM_FLAGS, scene_dir, obj, src)
         assert r.returncode == 0, r.stderr
@@ -66,6 +66,9 @@ def test_arm_compile_against_shims_and_size(scene_dir, tmp_path):
     # The app glue (2 test polytopes inline) stays small; the parameter/log tables are data.
     assert text < 4096 and data < 1024 and bss < 512
     assert sizes["polycc_kernel"][1:] == (0, 0)  # the kernel has no mutable state
+    assert sizes["polycc_shield"][1:] == (0, 0) and sizes["polycc_shield"][0] < 4096  # nor the shield
+    # the controller glue holds one plan (201 points: 4 kB) in RAM, nothing else of size
+    assert sizes["polycc_controller"][0] < 4096 and sizes["polycc_controller"][2] < 4096 + 512
 
 
 def test_format_mismatch_refuses_to_build(scene_dir, tmp_path):
@@ -98,14 +101,18 @@ def test_out_of_tree_layout():
     kb = (APP / "src" / "Kbuild").read_text()
     assert "ccflags-y += -ffp-contract=off" in kb
     assert "polycc_app.o" in kb and "polycc_kernel.o" in kb
+    assert "polycc_shield.o" in kb and "polycc_controller.o" in kb and cfg["CONFIG_CONTROLLER_OOT"] == "y"
 
 
 def test_only_the_app_includes_firmware_headers():
     inc = re.compile(r'#include\s+"([^"]+)"')
     for f in SRC.iterdir():
-        if f.suffix in (".c", ".h") and f.name != "polycc_app.c":
+        if f.suffix in (".c", ".h") and f.name not in ("polycc_app.c", "polycc_controller.c"):  # the two glue files
             assert not set(inc.findall(f.read_text())) & set(FIRMWARE_HEADERS), f.name
     assert set(FIRMWARE_HEADERS) <= set(inc.findall((SRC / "polycc_app.c").read_text()))
+    # The shield's controller glue: only firmware headers that have a shim, and the kernel/shield stay portable.
+    for h in set(inc.findall((SRC / "polycc_controller.c").read_text())) - {p.name for p in SRC.iterdir()}:
+        assert (SHIMS / h).is_file(), h
     # Every firmware header the app includes has a shim.
     for h in FIRMWARE_HEADERS:
         assert (SHIMS / h).is_file(), h

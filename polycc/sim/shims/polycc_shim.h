@@ -93,6 +93,10 @@ typedef struct shim_setpoint {
     uint32_t age_ms;      /* age of the commander's setpoint */
 } shim_setpoint_t;
 void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg, shim_setpoint_t *out);
+/* The estimate's acceleration (m/s^2, world frame; state->acc in Gs) the next stabilizer steps report. */
+void shim_set_acceleration(float ax, float ay, float az);
+/* controllerPid() calls (made by the out-of-tree controller while it is selected). */
+uint32_t shim_pid_calls(void);
 /* A client's setpoint at a commander priority (motors_on = 0: the stop setpoint), and cflib's
  * notify_setpoint_stop. */
 void shim_commander_set(const shim_setpoint_t *sp, int priority);

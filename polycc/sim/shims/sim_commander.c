@@ -22,6 +22,7 @@
 
 #include "commander.h"
 #include "controller.h"
+#include "controller_pid.h"
 #include "crtp.h"
 #include "crtp_commander_high_level.h"
 #include "polycc_shim.h"
@@ -37,6 +38,9 @@ static shim_commander_record_t rec;
 static setpoint_t current;      /* the commander's setpoint queue */
 static const setpoint_t nullSetpoint;
 static setpoint_t effective;    /* what the controller got at the last stabilizer step */
+static setpoint_t pidSetpoint; /* what controllerPid() got (out-of-tree controller) */
+static uint32_t pidCalls;
+static float accG[3]; /* state.acc, Gs */
 static int motorsOn;
 static uint32_t lastMotorsTick;
 static int everFlew;
@@ -286,6 +290,9 @@ static int hlGetSetpoint(setpoint_t *sp, const state_t *state)
 void shimCommanderReset(void)
 {
     memset(&rec, 0, sizeof rec);
+    pidSetpoint = nullSetpoint;
+    pidCalls = 0u;
+    accG[0] = accG[1] = accG[2] = 0.0f;
     current = nullSetpoint;
     effective = nullSetpoint;
     rec.active_priority = COMMANDER_PRIORITY_DISABLE;
@@ -393,6 +400,38 @@ static int isNull(const setpoint_t *sp)
     return sp->mode.z == modeDisable && !(sp->thrust > 0.0f);
 }
 
+/* The PID controller as the out-of-tree controller calls it: the host records what it gets. */
+
+void controllerPidInit(void) {}
+
+bool controllerPidTest(void)
+{
+    return true;
+}
+
+void controllerPid(control_t *control, const setpoint_t *setpoint, const sensorData_t *sensors, const state_t *state,
+                   const stabilizerStep_t stabilizerStep)
+{
+    (void)control;
+    (void)sensors;
+    (void)state;
+    (void)stabilizerStep;
+    pidSetpoint = *setpoint;
+    ++pidCalls;
+}
+
+void shim_set_acceleration(float ax, float ay, float az)
+{
+    accG[0] = ax / 9.81f;
+    accG[1] = ay / 9.81f;
+    accG[2] = az / 9.81f;
+}
+
+uint32_t shim_pid_calls(void)
+{
+    return pidCalls;
+}
+
 void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg, shim_setpoint_t *out)
 {
     state_t state;
@@ -406,6 +445,9 @@ void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg,
     state.velocity.y = vel[1];
     state.velocity.z = vel[2];
     state.attitude.yaw = yaw_deg;
+    state.acc.x = accG[0];
+    state.acc.y = accG[1];
+    state.acc.z = accG[2];
     if (!locked && (tick - lastHlTick >= HL_PERIOD_TICKS || tick < lastHlTick) && hlGetSetpoint(&hl, &state)) {
         lastHlTick = tick;
         commanderSetSetpoint(&hl, COMMANDER_PRIORITY_HIGHLEVEL);
@@ -424,8 +466,12 @@ void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg,
         sp.attitude.pitch = 0.0f;
         sp.attitudeRate.yaw = 0.0f;
     }
-    effective = sp;
     motorsOn = !isNull(&sp);
+    if (controllerType == ControllerTypeOot) { /* the stabilizer's controller() call: shield, then PID */
+        controllerOutOfTree(0, &sp, 0, &state, (stabilizerStep_t)tick);
+        sp = pidSetpoint;
+    }
+    effective = sp;
     if (motorsOn) {
         lastMotorsTick = tick;
         everFlew = 1;

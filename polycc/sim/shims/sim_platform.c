@@ -40,6 +40,9 @@ void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thr
 static void controllerChanged(void)
 {
     shim_set_controller(controllerParam == ControllerTypeAutoSelect ? ControllerTypePID : controllerParam);
+    if (controllerParam == ControllerTypeOot) { /* the firmware's controllerInit() of the chosen controller */
+        controllerOutOfTreeInit();
+    }
 }
 
 LOG_GROUP_START(stabilizer)

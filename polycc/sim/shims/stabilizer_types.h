@@ -5,6 +5,12 @@
 #include <stdbool.h>
 #include <stdint.h>
 
+/* Number of stabilizer loop runs (1 kHz). */
+typedef uint32_t stabilizerStep_t;
+/* Opaque here: the app only passes them on to controllerPid(). */
+typedef struct control_s control_t;
+typedef struct sensorData_s sensorData_t;
+
 typedef struct attitude_s {
     uint32_t timestamp;
     float roll;  /* deg */

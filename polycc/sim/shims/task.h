@@ -8,3 +8,7 @@
 TickType_t xTaskGetTickCount(void);
 void vTaskDelay(const TickType_t xTicksToDelay);
 void vTaskDelayUntil(TickType_t *const pxPreviousWakeTime, const TickType_t xTimeIncrement);
+
+/* Critical sections (the host is single-threaded per app instance: no-ops). */
+#define taskENTER_CRITICAL() ((void)0)
+#define taskEXIT_CRITICAL() ((void)0)

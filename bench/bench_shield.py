@@ -1,0 +1,120 @@
+"""Benchmark: the shield (issue 18) against today's app, in the fast SITL (host build of the app).
+
+Demo arena, the n = 150 cover (bench_sim's family), random start/goal pairs in free space; per
+commanded speed (the app's vmax: 0.5, 1, 2, 3 m/s) and vehicle model (the Crazyflie-like model
+and the full rigid-body quadrotor), the go-to-goal app flown
+
+* ``app``: as shipped (braking term on, standard PID controller, no shield);
+* ``shield``: braking term compiled out, the out-of-tree controller with polyccShield.enable = 1
+  (the shield filters the app's setpoints; app radius 0.2 m so that the app's own first-order
+  filter keeps clear of the shield's r + tube = 0.15 m).
+
+Columns: flights, goal reached, collisions (flights touching a ground-truth ellipsoid with the
+0.1 m radius), minimum clearance (exact distance minus 0.1 m), realized minus commanded barrier
+rate grad psi . (v - u) (Prop. 1 of seed 001; p1/p50/p99 over 100 Hz samples, m/s), jerk of the
+true vehicle at 100 Hz (RMS, p99, m/s^3), mean time to goal (successful flights), shield
+decisions with QP infeasibility and backup use per flight.  Wall-clock ratios are not the point
+here; the shield's cost on board is its certified cycle budget (printed, from the header).
+
+    python bench/bench_shield.py [--pairs N] [--jobs J] [--speeds 0.5,1,2,3] [--dynamics crazyflie,quadrotor]
+
+Writes bench/results/shield.json.  The real-firmware SITL columns (issue 13) are not here yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from common import print_table, write_json  # noqa: E402
+
+RADIUS = 0.1
+N_POLYS = 150
+
+
+def fly_cell(job: dict) -> dict:
+    from bench_sim import arena
+
+    from polycc.sim.sitl import FlightConfig, Simulator
+
+    t0 = time.perf_counter()
+    shield = job["mode"] == "shield"
+    sim = Simulator(job["header"], arena("demo"), brake=not shield)
+    cfg = FlightConfig(vmax=job["speed"], radius=0.2 if shield else RADIUS, clearance_radius=RADIUS, shield=shield,
+                       shield_radius=RADIUS)
+    trials = [sim.fly(s, g, job["dynamics"], cfg) for s, g in job["pairs"]]
+    ok = [t for t in trials if t.success]
+    gap = np.concatenate([t.rate_gap for t in trials if t.rate_gap is not None and len(t.rate_gap)] or [np.zeros(1)])
+    jerk = np.concatenate([t.jerk for t in trials if t.jerk is not None and len(t.jerk)] or [np.zeros(1)])
+    sh = [t.shield for t in trials if t.shield]
+    per = (lambda k: float(np.mean([s[k] for s in sh]))) if sh else (lambda k: 0.0)
+    return {
+        **{k: v for k, v in job.items() if k not in ("pairs", "header")},
+        "flights": len(trials), "goal": len(ok),
+        "collisions": int(sum(t.collisions > 0 for t in trials)),
+        "min_clearance_m": float(min(t.min_clearance_m for t in trials)),
+        "gap_p1": float(np.percentile(gap, 1)), "gap_p50": float(np.percentile(gap, 50)),
+        "gap_p99": float(np.percentile(gap, 99)),
+        "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
+        "time_to_goal_s": float(np.mean([t.time_s for t in ok])) if ok else float("nan"),
+        "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
+        "backups_per_flight": per("backups"), "eval_caps_per_flight": per("eval_caps"),
+        "outcomes": {o: sum(t.outcome == o for t in trials) for o in ("goal", "stuck", "timeout")},
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pairs", type=int, default=100, help="random start/goal pairs per speed (default 100)")
+    ap.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    ap.add_argument("--speeds", default="0.5,1,2,3", help="commanded speeds, m/s")
+    ap.add_argument("--dynamics", default="crazyflie,quadrotor", help="vehicle models")
+    ap.add_argument("--min-distance", type=float, default=1.5, help="minimum start-goal distance, m")
+    args = ap.parse_args()
+    from bench_sim import pairs_for, write_header
+
+    from polycc.sim.app_ffi import AppSim
+
+    header = write_header("demo", N_POLYS)
+    pairs = pairs_for(header, "demo", args.pairs, args.min_distance, seed=18)
+    app = AppSim(header)
+    lib = app.lib
+    budget = {"scene_worst_cycles": int(lib.polycc_app_scene_worst_cycles()),
+              "plan_max_evals": int(lib.polycc_controller_max_evals()),
+              "plan_worst_cycles": int(lib.polycc_controller_plan_worst_cycles()),
+              "period_share_cycles": 168_000 * 10 * int(lib.POLYCC_SHIELD_CPU_SHARE_PERCENT) // 100}
+    print(f"shield plan budget: {budget}")
+    jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m}
+            for d in args.dynamics.split(",") for s in args.speeds.split(",") for m in ("app", "shield")]
+    t0 = time.perf_counter()
+    rows = []
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+        futs = {ex.submit(fly_cell, j): i for i, j in enumerate(jobs)}
+        for f in as_completed(futs):  # partial results are kept as cells finish
+            rows.append((futs[f], f.result()))
+            write_json("shield", {"pairs": args.pairs, "budget": budget, "partial": len(rows) < len(jobs),
+                                  "rows": [r for _, r in sorted(rows, key=lambda t: t[0])],
+                                  "wall_s": time.perf_counter() - t0})
+            print(f"cell {len(rows)}/{len(jobs)} done", flush=True)
+    rows = [r for _, r in sorted(rows, key=lambda t: t[0])]
+    head = ["model", "v m/s", "mode", "goal", "coll.", "min clr m", "gap p1", "gap p50", "gap p99", "jerk rms",
+            "jerk p99", "t goal s", "infeas./fl", "backup/fl", "dec./fl"]
+    table = [[r["dynamics"], r["speed"], r["mode"], f"{r['goal']}/{r['flights']}", r["collisions"],
+              r["min_clearance_m"], r["gap_p1"], r["gap_p50"], r["gap_p99"], r["jerk_rms"], r["jerk_p99"],
+              r["time_to_goal_s"], r["infeasible_per_flight"], r["backups_per_flight"], r["decisions_per_flight"]]
+             for r in rows]
+    print_table(f"Shield vs today's app, demo arena n={N_POLYS}, {args.pairs} pairs per speed (fast SITL)", head, table)
+    write_json("shield", {"pairs": args.pairs, "budget": budget, "rows": rows, "wall_s": time.perf_counter() - t0})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

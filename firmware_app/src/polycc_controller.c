@@ -1,0 +1,407 @@
+/*
+ * polycc_controller.c -- the shield mode: out-of-tree controller wrapping the firmware's PID, and
+ * the per-tick filter that runs the shield on every setpoint (polycc_controller.h).
+ *
+ * Build: CONFIG_CONTROLLER_OOT=y (firmware_app/app-config) and stabilizer.controller set to the
+ * out-of-tree controller; the app's scene comes from polycc_app.c (one copy in flash).
+ * The host SITL compiles this file against the shims, whose stabilizer step calls
+ * controllerOutOfTree() exactly as the firmware's stabilizer loop does.
+ */
+#include <math.h>
+#include <stdbool.h>
+#include <stdint.h>
+#include <string.h>
+
+#include "controller.h"
+#include "controller_pid.h"
+#include "FreeRTOS.h"
+#include "log.h"
+#include "param.h"
+#include "stabilizer_types.h"
+#include "task.h"
+
+#define DEBUG_MODULE "POLYCCSH"
+#include "debug.h"
+
+#include "polycc_app.h"
+#include "polycc_controller.h"
+#include "polycc_shield.h"
+
+#define G_MS2 9.81f
+
+/* ---- parameter group polyccShield ---- */
+static uint8_t pOn;
+static float pTube = POLYCC_SHIELD_DEFAULT_TUBE, pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
+static float pK1 = POLYCC_SHIELD_DEFAULT_K1, pK0 = POLYCC_SHIELD_DEFAULT_K0;
+static float pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
+
+/* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
+typedef struct mailbox {
+    float pos[3], vel[3], acc[3], ud[3];
+    uint32_t tick;
+    bool manual, valid;
+} mailbox_t;
+
+/* ---- app -> stabilizer: decisions ---- */
+typedef struct decision {
+    float u[3];        /* velocity flown when not passing */
+    float planned[3];  /* desired velocity it was planned for */
+    uint32_t from, to; /* flown for from <= tick < to (stabilizer ticks) */
+    bool pass;         /* the live setpoint passes while it stays near `planned` */
+    bool valid;
+} decision_t;
+
+static mailbox_t mbox;
+static decision_t cur, next;
+static volatile bool on; /* the shield filters setpoints (written by the app task) */
+static bool warnedManual, warnedSlow;
+static uint32_t lastPlan;
+static bool planned;
+static polycc_shield_job_t job; /* 4 kB: one plan */
+static polycc_shield_params_t jobPrm;
+static polycc_controller_trace_t trace;
+static float lPsi, lMinC;
+
+static float clampf(float x, float lo, float hi)
+{
+    return x < lo ? lo : (x > hi ? hi : x);
+}
+
+uint32_t polycc_controller_max_evals(void)
+{
+    const uint64_t avail = (uint64_t)(POLYCC_APP_CPU_HZ / 1000u) * POLYCC_SHIELD_PERIOD_TICKS *
+                           POLYCC_SHIELD_CPU_SHARE_PERCENT / 100u;
+    const uint64_t own = POLYCC_SHIELD_FIXED_CYCLES + (uint64_t)POLYCC_SHIELD_STEP_CYCLES * POLYCC_SHIELD_MAX_STEPS;
+    const uint64_t worst = polycc_app_scene_worst_cycles();
+    uint64_t e;
+    if (avail <= own || worst == 0u) {
+        return 0u;
+    }
+    e = (avail - own) / worst;
+    return e > POLYCC_SHIELD_MAX_EVALS ? POLYCC_SHIELD_MAX_EVALS : (uint32_t)e;
+}
+
+uint32_t polycc_controller_plan_worst_cycles(void)
+{
+    return POLYCC_SHIELD_FIXED_CYCLES + POLYCC_SHIELD_STEP_CYCLES * POLYCC_SHIELD_MAX_STEPS +
+           polycc_controller_max_evals() * polycc_app_scene_worst_cycles();
+}
+
+static void fillParams(polycc_shield_params_t *q)
+{
+    q->kappa = polycc_app_scene_kappa();
+    q->radius = pRadius;
+    q->h = 0.01f;
+    q->k_v = 4.2803f; /* PID_VEL_X_KP 25 deg per m/s times g (polycc.sim.dynamics.CrazyflieParams) */
+    q->k_z = 9.3f;
+    q->a_xy = 3.96f;  /* g tan 22 deg */
+    q->a_up = 11.77f; /* 1.2 g */
+    q->a_dn = 5.69f;  /* 0.58 g */
+    q->tau = 1.0f / 6.0f;
+    q->k1 = pK1;
+    q->k0 = pK0;
+    q->v_max = pVmax;
+    q->tube = pTube;
+    q->v_term = 0.05f;
+    q->a_term = 0.5f;
+    q->n_lat = 3u; /* 20 ms estimator delay + the 10 ms until the decision is flown */
+    q->n_commit = 1u;
+    q->n_steps = POLYCC_SHIELD_MAX_STEPS;
+    q->max_evals = polycc_controller_max_evals();
+}
+
+/* Runtime state only (the parameters keep their values): also on every controller switch. */
+static void resetState(void)
+{
+    memset(&mbox, 0, sizeof mbox);
+    memset(&cur, 0, sizeof cur);
+    memset(&next, 0, sizeof next);
+    on = false;
+    warnedManual = false;
+    warnedSlow = false;
+    lastPlan = 0u;
+    planned = false;
+    memset(&trace, 0, sizeof trace);
+    lPsi = 0.0f;
+    lMinC = 0.0f;
+}
+
+void polycc_controller_init(void)
+{
+    pOn = 0u;
+    pTube = POLYCC_SHIELD_DEFAULT_TUBE;
+    pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
+    pK1 = POLYCC_SHIELD_DEFAULT_K1;
+    pK0 = POLYCC_SHIELD_DEFAULT_K0;
+    pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
+    resetState();
+}
+
+const polycc_controller_trace_t *polycc_controller_trace(void)
+{
+    return &trace;
+}
+
+/* The velocity the PID cascade aims for under sp (world frame); false for manual setpoints. */
+static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_deg, float u[3])
+{
+    const stab_mode_t m[3] = {sp->mode.x, sp->mode.y, sp->mode.z};
+    float sv[3] = {sp->velocity.x, sp->velocity.y, sp->velocity.z};
+    const float spp[3] = {sp->position.x, sp->position.y, sp->position.z};
+    int i;
+    if (m[0] == modeDisable || m[1] == modeDisable || m[2] == modeDisable) {
+        return false;
+    }
+    if (sp->velocity_body) {
+        float yaw = yaw_deg * (3.14159265358979f / 180.0f), c = cosf(yaw), s = sinf(yaw);
+        float bx = sv[0], by = sv[1];
+        sv[0] = c * bx - s * by;
+        sv[1] = s * bx + c * by;
+    }
+    for (i = 0; i < 3; ++i) {
+        u[i] = m[i] == modeAbs ? clampf(sv[i] + POLYCC_SHIELD_POS_KP * (spp[i] - pos[i]), -POLYCC_SHIELD_POS_VMAX,
+                                        POLYCC_SHIELD_POS_VMAX)
+                               : sv[i];
+    }
+    return true;
+}
+
+static void override(setpoint_t *sp, const float u[3])
+{
+    sp->mode.x = modeVelocity;
+    sp->mode.y = modeVelocity;
+    sp->mode.z = modeVelocity;
+    sp->velocity.x = u[0];
+    sp->velocity.y = u[1];
+    sp->velocity.z = u[2];
+    sp->velocity_body = false;
+    sp->acceleration.x = 0.0f;
+    sp->acceleration.y = 0.0f;
+    sp->acceleration.z = 0.0f;
+    trace.overrides += 1u;
+}
+
+static bool near3(const float a[3], const float b[3], float tol)
+{
+    return fabsf(a[0] - b[0]) <= tol && fabsf(a[1] - b[1]) <= tol && fabsf(a[2] - b[2]) <= tol;
+}
+
+/* ------------------------------------------------------------------ stabilizer side */
+void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float vel[3], const float acc[3],
+                              float yaw_deg, uint32_t tick)
+{
+    static const float zero[3] = {0.0f, 0.0f, 0.0f};
+    float ud[3] = {0.0f, 0.0f, 0.0f};
+    bool manual = !desiredVelocity(sp, pos, yaw_deg, ud), isOn;
+    decision_t d;
+    taskENTER_CRITICAL();
+    memcpy(mbox.pos, pos, sizeof mbox.pos);
+    memcpy(mbox.vel, vel, sizeof mbox.vel);
+    memcpy(mbox.acc, acc, sizeof mbox.acc);
+    memcpy(mbox.ud, ud, sizeof mbox.ud);
+    mbox.tick = tick;
+    mbox.manual = manual;
+    mbox.valid = true;
+    if (next.valid && (int32_t)(tick - next.from) >= 0) { /* the pending decision becomes current */
+        cur = next;
+        next.valid = false;
+    }
+    d = cur;
+    isOn = on;
+    taskEXIT_CRITICAL();
+    if (!isOn) {
+        return;
+    }
+    if (manual) {
+        if (!warnedManual) {
+            DEBUG_PRINT("shield: manual attitude/rate setpoint passed unfiltered (not protected)\n");
+            warnedManual = true;
+        }
+        trace.manual += 1u;
+        trace.status = POLYCC_SHIELD_STATUS_MANUAL;
+        return;
+    }
+    if (!d.valid) { /* just switched on: the first decision is on its way */
+        return;
+    }
+    if ((int32_t)(tick - d.to) >= 0) { /* not replaced in time: the backup */
+        override(sp, zero);
+        return;
+    }
+    if (d.pass && near3(ud, d.planned, POLYCC_SHIELD_PASS_TOL)) {
+        return;
+    }
+    override(sp, d.pass ? d.planned : d.u);
+}
+
+/* ------------------------------------------------------------------ app side */
+static void switchOff(uint8_t status)
+{
+    taskENTER_CRITICAL();
+    on = false;
+    cur.valid = false;
+    next.valid = false;
+    taskEXIT_CRITICAL();
+    planned = false;
+    trace.on = 0u;
+    trace.status = status;
+}
+
+void polycc_controller_plan(uint32_t now)
+{
+    mailbox_t m;
+    decision_t d;
+    const float *uApp;
+    uint32_t f;
+    float speed2;
+    if (!pOn && !on) {
+        trace.status = POLYCC_SHIELD_STATUS_OFF;
+        return;
+    }
+    if (planned && (uint32_t)(now - lastPlan) < POLYCC_SHIELD_PERIOD_TICKS) {
+        return;
+    }
+    if (polycc_controller_max_evals() == 0u) {
+        if (!warnedSlow) {
+            DEBUG_PRINT("shield refused: the scene's worst case (%u cycles) does not fit %u %% of a 10 ms period\n",
+                        (unsigned)polycc_app_scene_worst_cycles(), (unsigned)POLYCC_SHIELD_CPU_SHARE_PERCENT);
+            warnedSlow = true;
+        }
+        switchOff(POLYCC_SHIELD_STATUS_TOO_SLOW);
+        return;
+    }
+    taskENTER_CRITICAL();
+    m = mbox;
+    d = cur;
+    taskEXIT_CRITICAL();
+    if (!m.valid || (uint32_t)(now - m.tick) > 2u * POLYCC_SHIELD_PERIOD_TICKS) {
+        switchOff(POLYCC_SHIELD_STATUS_NO_CONTROLLER); /* the out-of-tree controller does not run */
+        return;
+    }
+    speed2 = (m.vel[0] * m.vel[0] + m.vel[1] * m.vel[1]) + m.vel[2] * m.vel[2];
+    if (!pOn) { /* safe hand-over: only while the shield leaves the setpoint alone, or at rest */
+        if (!d.valid || d.pass || m.manual || speed2 <= 0.05f * 0.05f) {
+            switchOff(POLYCC_SHIELD_STATUS_OFF);
+            return;
+        }
+        trace.status = POLYCC_SHIELD_STATUS_OFF_PENDING;
+    } else if (!on) {
+        on = true;
+        warnedManual = false;
+        trace.status = POLYCC_SHIELD_STATUS_STARTING;
+    }
+    trace.on = 1u;
+    lastPlan = now;
+    planned = true;
+    if (m.manual) {
+        return;
+    }
+    fillParams(&jobPrm);
+    uApp = d.valid && !d.pass ? d.u : m.ud;
+    f = polycc_shield_run(&job, polycc_app_scene(), &jobPrm, m.pos, m.vel, m.acc, uApp, m.ud);
+    trace.decisions += 1u;
+    trace.last_flags = f;
+    trace.last_evals = job.evals;
+    trace.last_min_c = job.min_c;
+    trace.psi = job.psi;
+    lPsi = job.psi;
+    lMinC = job.min_c;
+    if (f & POLYCC_SHIELD_INFEASIBLE) {
+        trace.infeasible += 1u;
+    }
+    if (f & POLYCC_SHIELD_EVAL_CAP) {
+        trace.eval_caps += 1u;
+    }
+    memset(&d, 0, sizeof d);
+    d.valid = true;
+    d.from = m.tick + POLYCC_SHIELD_PERIOD_TICKS;
+    d.to = m.tick + 2u * POLYCC_SHIELD_PERIOD_TICKS;
+    memcpy(d.planned, m.ud, sizeof d.planned);
+    if (f & POLYCC_SHIELD_CERTIFIED) {
+        trace.certified += 1u;
+        memcpy(d.u, job.u_c, sizeof d.u);
+        d.pass = !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED));
+        if (pOn) {
+            trace.status = d.pass ? POLYCC_SHIELD_STATUS_PASS : POLYCC_SHIELD_STATUS_FILTERED;
+        }
+    } else {
+        trace.backups += 1u;
+        if (pOn) {
+            trace.status = POLYCC_SHIELD_STATUS_BACKUP;
+        }
+    }
+    memcpy(trace.u, d.u, sizeof d.u);
+    taskENTER_CRITICAL();
+    next = d;
+    taskEXIT_CRITICAL();
+}
+
+#ifdef CONFIG_CONTROLLER_OOT
+/* ---- the out-of-tree controller: the shield, then the firmware's PID ---- */
+void controllerOutOfTreeInit(void)
+{
+    controllerPidInit();
+    resetState();
+}
+
+bool controllerOutOfTreeTest(void)
+{
+    return controllerPidTest();
+}
+
+void controllerOutOfTree(control_t *control, const setpoint_t *setpoint, const sensorData_t *sensors,
+                         const state_t *state, const stabilizerStep_t stabilizerStep)
+{
+    setpoint_t sp = *setpoint;
+    const float pos[3] = {state->position.x, state->position.y, state->position.z};
+    const float vel[3] = {state->velocity.x, state->velocity.y, state->velocity.z};
+    const float acc[3] = {state->acc.x * G_MS2, state->acc.y * G_MS2, state->acc.z * G_MS2};
+    polycc_controller_filter(&sp, pos, vel, acc, state->attitude.yaw, (uint32_t)stabilizerStep);
+    controllerPid(control, &sp, sensors, state, stabilizerStep);
+}
+#endif
+
+/**
+ * polycc shield: every position/velocity setpoint through the certified barrier (docs/barrier.md 8).
+ */
+PARAM_GROUP_START(polyccShield)
+/** @brief Nonzero: filter every setpoint (needs stabilizer.controller = out-of-tree); 0: off, after a safe
+ * hand-over (default 0) */
+PARAM_ADD(PARAM_UINT8, enable, &pOn)
+/** @brief Agent radius r the shield keeps clear, m (default 0.1) */
+PARAM_ADD(PARAM_FLOAT, radius, &pRadius)
+/** @brief Model-tracking allowance e_tube, m (default 0.05) */
+PARAM_ADD(PARAM_FLOAT, tube, &pTube)
+/** @brief Speed cap of the filtered command, m/s (default 3) */
+PARAM_ADD(PARAM_FLOAT, vmax, &pVmax)
+/** @brief ECBF gain on the barrier rate, 1/s (default 4) */
+PARAM_ADD(PARAM_FLOAT, k1, &pK1)
+/** @brief ECBF gain on the barrier, 1/s^2 (default 4) */
+PARAM_ADD(PARAM_FLOAT, k0, &pK0)
+PARAM_GROUP_STOP(polyccShield)
+
+/**
+ * polycc shield state.
+ */
+LOG_GROUP_START(polyccShield)
+/** @brief 0 off, 1 pass, 2 filtered, 3 backup (braking), 4 manual (unfiltered), 5 off pending, 6 too slow, 7 starting */
+LOG_ADD(LOG_UINT8, status, &trace.status)
+/** @brief Decisions made (100 Hz while on) */
+LOG_ADD(LOG_UINT32, decisions, &trace.decisions)
+/** @brief Decisions that flew the backup (brake to hover) */
+LOG_ADD(LOG_UINT32, backups, &trace.backups)
+/** @brief ECBF candidates infeasible within vmax */
+LOG_ADD(LOG_UINT32, infeasible, &trace.infeasible)
+/** @brief Ticks with a manual setpoint passed unfiltered */
+LOG_ADD(LOG_UINT32, manual, &trace.manual)
+/** @brief psi at the last decision's estimate, m */
+LOG_ADD(LOG_FLOAT, psi, &lPsi)
+/** @brief Smallest psi - tube over the last plan's samples, m */
+LOG_ADD(LOG_FLOAT, minC, &lMinC)
+/** @brief Commanded velocity x of the decision, m/s */
+LOG_ADD(LOG_FLOAT, ux, &trace.u[0])
+/** @brief Commanded velocity y, m/s */
+LOG_ADD(LOG_FLOAT, uy, &trace.u[1])
+/** @brief Commanded velocity z, m/s */
+LOG_ADD(LOG_FLOAT, uz, &trace.u[2])
+LOG_GROUP_STOP(polyccShield)

@@ -1,0 +1,101 @@
+/*
+ * polycc_controller.h -- the shield mode of the polycc app: an out-of-tree controller
+ * (CONFIG_CONTROLLER_OOT, stabilizer.controller = OutOfTree) that filters every setpoint through
+ * the shield (polycc_shield.h) before the firmware's PID controller acts on it.
+ *
+ * No firmware headers here (shared with the host build).  World frame, z up; m, s, m/s.
+ *
+ * Two halves (docs/barrier.md section 8, "Rate and slot"):
+ *   stabilizer task, every 1 kHz tick: controllerOutOfTree() -> polycc_controller_filter() posts the
+ *     commander's setpoint (as a desired velocity) and the estimate to a mailbox, applies the
+ *     current decision, then controllerPid() runs on the result.  O(1): no psi evaluation.
+ *   app task, every app tick: polycc_controller_plan() makes a decision every
+ *     POLYCC_SHIELD_PERIOD_TICKS (100 Hz, the PID position loop's rate) from the mailbox: one full
+ *     polycc_shield_run() with as many psi evaluations as the scene's certified worst case fits in
+ *     POLYCC_SHIELD_CPU_SHARE_PERCENT of the period.  The app task is preemptible, so a plan never
+ *     delays the 1 kHz loop.
+ * A decision planned from the estimate of tick t0 is flown from t0 + 10 to t0 + 20 (the model's
+ * latency and commit, n_lat = 3, n_commit = 1 steps of 10 ms): certified -> the candidate (the
+ * setpoint passes unchanged when the candidate is the desired velocity), otherwise the backup
+ * u = 0 (brake to hover); a decision that is not replaced in time expires into the backup.
+ * Setpoints the shield changes become world-frame velocity setpoints (yaw fields kept).  Manual
+ * attitude/rate/thrust setpoints (x, y or z mode disabled) pass unfiltered: status manual,
+ * counted, one warning per switch-on.
+ *
+ * Param polyccShield.enable switches the shield; on: the first decision is flown one to two
+ * periods later (status starting: setpoints pass meanwhile); off: deferred (status off-pending)
+ * while the shield changes the setpoint, until it passes one unchanged or the vehicle is at rest.
+ */
+#ifndef POLYCC_CONTROLLER_H
+#define POLYCC_CONTROLLER_H
+
+#include <stdint.h>
+
+#include "polycc_shield.h"
+
+/* Log variable polyccShield.status (uint8). */
+#define POLYCC_SHIELD_STATUS_OFF 0u         /* enable = 0: setpoints pass untouched */
+#define POLYCC_SHIELD_STATUS_PASS 1u        /* certified, the setpoint passes unchanged */
+#define POLYCC_SHIELD_STATUS_FILTERED 2u    /* certified candidate differs from the setpoint: deflected/slowed */
+#define POLYCC_SHIELD_STATUS_BACKUP 3u      /* no certified plan: braking to hover (u = 0) */
+#define POLYCC_SHIELD_STATUS_MANUAL 4u      /* attitude/rate/thrust setpoint: passed unfiltered (unprotected) */
+#define POLYCC_SHIELD_STATUS_OFF_PENDING 5u /* enable = 0 while the shield changes the setpoint: still on */
+#define POLYCC_SHIELD_STATUS_TOO_SLOW 6u    /* the scene's worst case does not fit a stabilizer tick: refused */
+#define POLYCC_SHIELD_STATUS_STARTING 7u    /* just switched on: the first plan is being computed, setpoints pass */
+#define POLYCC_SHIELD_STATUS_NO_CONTROLLER 8u /* enabled, but stabilizer.controller is not the out-of-tree one */
+#define POLYCC_SHIELD_STATUS_COUNT 9u
+
+#define POLYCC_SHIELD_PERIOD_TICKS 10u /* 100 Hz decisions at the 1 kHz stabilizer tick */
+/* Share of the CPU over one period (10 ms = 1 680 000 cycles) a plan may use, percent. */
+#define POLYCC_SHIELD_CPU_SHARE_PERCENT 25u
+/* Cycle model of the plan's own work besides psi (polycc/budget/cycle_model.py shield_plan_cycles). */
+#define POLYCC_SHIELD_FIXED_CYCLES 4000u /* mailbox, candidate, decision, bookkeeping */
+#define POLYCC_SHIELD_STEP_CYCLES 260u   /* one model step plus its share of the coverage walk (measured 236) */
+
+/* Defaults of the polyccShield parameter group. */
+#define POLYCC_SHIELD_DEFAULT_TUBE 0.05f  /* m: model-tracking allowance e_tube */
+#define POLYCC_SHIELD_DEFAULT_VMAX 3.0f   /* m/s: speed cap of the candidate */
+#define POLYCC_SHIELD_DEFAULT_K1 4.0f     /* 1/s */
+#define POLYCC_SHIELD_DEFAULT_K0 4.0f     /* 1/s^2 */
+#define POLYCC_SHIELD_DEFAULT_RADIUS 0.1f /* m: polyccShield.radius, the shield's own (polycc.radius is the app's) */
+/* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
+#define POLYCC_SHIELD_POS_KP 2.0f
+#define POLYCC_SHIELD_POS_VMAX 1.0f
+/* A live setpoint passes unchanged under a "pass" decision only while its desired velocity stays
+ * within this of the one the decision certified (m/s, per component). */
+#define POLYCC_SHIELD_PASS_TOL 0.05f
+
+/* Resets the shield (off) and its parameters to the defaults. */
+void polycc_controller_init(void);
+/* Stabilizer side: replaces *sp by what the PID gets this tick.  pos/vel/acc: the estimate (m,
+ * m/s, m/s^2), yaw_deg its heading; tick: the stabilizer step (1 kHz, = FreeRTOS ticks). */
+struct setpoint_s;
+void polycc_controller_filter(struct setpoint_s *sp, const float pos[3], const float vel[3], const float acc[3],
+                              float yaw_deg, uint32_t tick);
+/* App side: plans a decision when one is due (call every app tick; now = FreeRTOS tick). */
+void polycc_controller_plan(uint32_t now);
+/* psi evaluations per plan the scene's certified worst case allows (0: the shield is refused). */
+uint32_t polycc_controller_max_evals(void);
+/* Certified worst case of one plan, Cortex-M4 cycles (cycle model; <= the period's share). */
+uint32_t polycc_controller_plan_worst_cycles(void);
+
+/* Counters and the last decision (log group polyccShield; for tests and the SITL). */
+typedef struct polycc_controller_trace {
+    uint32_t decisions;   /* decisions made while on */
+    uint32_t certified;   /* certified plans flown (pass or filtered) */
+    uint32_t backups;     /* decisions that flew the backup (brake) */
+    uint32_t infeasible;  /* ECBF half-space infeasible within v_max */
+    uint32_t manual;      /* ticks with a manual setpoint passed unfiltered */
+    uint32_t eval_caps;   /* plans not covered within their evaluations */
+    uint32_t overrides;   /* ticks the setpoint was replaced */
+    uint32_t last_flags;  /* POLYCC_SHIELD_* of the last finished plan */
+    uint32_t last_evals;
+    float last_min_c;     /* m */
+    float psi;            /* psi at the last decision's estimate, m */
+    float u[3];           /* the velocity flown under the current decision, m/s */
+    uint8_t status;       /* POLYCC_SHIELD_STATUS_* */
+    uint8_t on;
+} polycc_controller_trace_t;
+const polycc_controller_trace_t *polycc_controller_trace(void);
+
+#endif /* POLYCC_CONTROLLER_H */

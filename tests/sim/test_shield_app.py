@@ -1,0 +1,153 @@
+"""The shield mode of the app through the host shims (the very C the firmware compiles): every
+setpoint source is filtered once stabilizer.controller is the out-of-tree controller and
+polyccShield.enable = 1 (firmware_app/src/polycc_controller.[ch], docs/barrier.md section 8).
+
+Scenarios on a wall (the box x in [2, 2.3]; the cover is the box itself, so the true clearance is
+the distance to it minus r = 0.1 m): a client's velocity stream at 1 and 2 m/s straight at it,
+and a high-level go_to through it, with the shield on (stops with clearance >= r) and off (the
+same flight enters the wall: the test can fail)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from polycc.codegen.header import write_outputs
+from polycc.geometry.halfplanes import axis_box
+from polycc.onboard import shield as S
+from polycc.sim.sitl_device import SitlDeviceModel
+
+R = 0.1
+WALL_X = 2.0
+STATUS = {"off": 0, "pass": 1, "filtered": 2, "backup": 3, "manual": 4, "off_pending": 5, "too_slow": 6,
+          "starting": 7, "no_controller": 8}
+
+
+@pytest.fixture(scope="module")
+def header(tmp_path_factory):
+    d = tmp_path_factory.mktemp("wall")
+    write_outputs(d, [axis_box([WALL_X, -2, 0], [2.3, 2, 2])], {"kappa": 100.0})
+    return d / "polytopes.h"
+
+
+def _model(header, dynamics="crazyflie", shield=True, start=(0.0, 0.0, 1.0)) -> SitlDeviceModel:
+    m = SitlDeviceModel(header, start=start, dynamics=dynamics)
+    lib = m.app.lib
+    if shield:
+        m.app.set_param("stabilizer", "controller", int(lib.ControllerTypeOot))
+        m.app.set_param("polyccShield", "enable", 1)
+    m.app.set_param("polyccShield", "radius", R)
+    return m
+
+
+def _clearance(m: SitlDeviceModel) -> float:
+    return WALL_X - float(m.dyn.p[0]) - R
+
+
+def _stream(m, v, seconds: float, every_ms: int = 10) -> float:
+    """A client's world-frame velocity setpoints (cflib send_velocity_world_setpoint) at CRTP priority;
+    returns the smallest true clearance."""
+    worst = np.inf
+    end = m.sim_ms + int(seconds * 1000)
+    while m.sim_ms < end:
+        if m.sim_ms % every_ms == 0:
+            m._set_client(True, mode=(2, 2, 2), v=v)
+        m.step()
+        worst = min(worst, _clearance(m))
+    return worst
+
+
+def _trace(m):
+    return m.app.lib.polycc_controller_trace()
+
+
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+def test_velocity_stream_at_a_wall_stops_clear_and_unfiltered_crashes(header, dynamics, speed):
+    m = _model(header, dynamics)
+    worst = _stream(m, (speed, 0.0, 0.0), 4.0)
+    tr = _trace(m)
+    assert worst >= 0.0, f"shield on: {-worst:.3f} m into the wall"
+    assert tr.decisions > 300 and tr.backups > 0 and tr.status in (STATUS["backup"], STATUS["filtered"])
+    assert abs(float(m.dyn.v[0])) < 0.1, "it stopped"
+    off = _model(header, dynamics, shield=False)
+    assert _stream(off, (speed, 0.0, 0.0), 4.0) < -0.2, "unfiltered, the same stream flies into the wall"
+    assert _trace(off).decisions == 0
+
+
+def test_high_level_go_to_through_the_wall_is_stopped(header):
+    for shield in (True, False):
+        m = _model(header, shield=shield)
+        assert m.app.lib.crtpCommanderHighLevelGoTo(4.0, 0.0, 1.0, 0.0, 3.0, False) == 0
+        worst = np.inf
+        for _ in range(5000):
+            m.step()
+            worst = min(worst, _clearance(m))
+        if shield:
+            assert worst >= 0.0 and _trace(m).overrides > 0
+        else:
+            assert worst < -1.0  # through it
+
+
+def test_free_flight_passes_unchanged(header):
+    m = _model(header)
+    worst = _stream(m, (0.0, 0.5, 0.0), 1.0)  # parallel to the wall, 1.9 m away
+    tr = _trace(m)
+    assert worst > 1.5 and tr.backups == 0 and tr.decisions >= 90 and tr.status == STATUS["pass"]
+    rec = m.app.commander()
+    assert abs(rec.velocity[1] - 0.5) < 1e-6 and m._sp.vy == pytest.approx(0.5)  # the PID gets the client's setpoint
+
+
+def test_manual_attitude_setpoints_pass_unfiltered_with_a_warning(header):
+    m = _model(header)
+    m.app.debug_output()
+    for _ in range(300):
+        if m.sim_ms % 10 == 0:
+            m._set_client(True, mode=(0, 0, 2), rp=(0.0, 5.0), v=(0.0, 0.0, 0.0))
+        m.step()
+    tr = _trace(m)
+    assert tr.manual > 0 and tr.status == STATUS["manual"]
+    assert m._sp.mode_x == 0 and m._sp.pitch == pytest.approx(5.0)  # passed as sent
+    assert "manual attitude/rate setpoint passed unfiltered" in m.app.debug_output()
+
+
+def test_switching_off_while_braking_is_deferred_then_released(header):
+    m = _model(header)
+    _stream(m, (1.5, 0.0, 0.0), 1.3)  # close to the wall and fast: the shield brakes
+    assert _trace(m).status in (STATUS["backup"], STATUS["filtered"])
+    m.app.set_param("polyccShield", "enable", 0)
+    _stream(m, (1.5, 0.0, 0.0), 0.05)
+    assert _trace(m).status == STATUS["off_pending"] and _trace(m).on == 1
+    worst_on = np.inf
+    for _ in range(300):
+        worst = _stream(m, (1.5, 0.0, 0.0), 0.01)
+        if _trace(m).on == 0:
+            break
+        worst_on = min(worst_on, worst)
+    assert worst_on >= 0.0  # still protected until released ...
+    assert _trace(m).on == 0 and _trace(m).status == STATUS["off"]  # ... at rest (the user's stream is then unfiltered)
+    assert abs(float(m.dyn.v[0])) < 0.2
+
+
+def test_enabled_without_the_out_of_tree_controller_says_so(header):
+    m = _model(header, shield=False)
+    m.app.set_param("polyccShield", "enable", 1)
+    _stream(m, (0.0, 0.0, 0.0), 0.1)
+    assert _trace(m).status == STATUS["no_controller"] and _trace(m).decisions == 0
+
+
+def test_plan_budget_matches_the_cycle_model(header):
+    from polycc.budget import cycle_model as CM
+
+    m = _model(header)
+    lib = m.app.lib
+    c = tuple(int(getattr(lib, f"POLYCC_SHIELD_{k}")) for k in ("FIXED_CYCLES", "STEP_CYCLES", "PERIOD_TICKS",
+                                                                 "CPU_SHARE_PERCENT"))
+    assert c == (CM.SHIELD_FIXED_CYCLES, CM.SHIELD_STEP_CYCLES, CM.SHIELD_PERIOD_TICKS, CM.SHIELD_CPU_SHARE_PERCENT)
+    assert (S.MAX_STEPS, S.MAX_EVALS) == (CM.SHIELD_MAX_STEPS, CM.SHIELD_MAX_EVALS)
+    worst = int(lib.polycc_app_scene_worst_cycles())
+    assert int(lib.polycc_controller_max_evals()) == CM.shield_max_evals(worst) >= 1
+    assert int(lib.polycc_controller_plan_worst_cycles()) == CM.shield_plan_cycles(worst) <= 168_000 * 10 // 4
+    for w in (10_000, 115_470, 200_000, 400_000):  # the demo arena at 8 KiB: 115 470 cycles -> 3 evaluations
+        assert CM.shield_plan_cycles(w) <= 420_000
+    assert CM.shield_max_evals(115_470) == 3 and CM.shield_max_evals(400_000) == 0
