@@ -112,12 +112,23 @@ class CoverageMap:
         return self._tree.query(np.asarray(p, float).reshape(-1, 3))[1]
 
     def density(self, kind: str, alive: np.ndarray) -> np.ndarray:
+        """log of the density at every free cell (-inf: none), over the undetected peaks ``alive``:
+        kept in logs because a cell metres from every peak has exp(-d²/2σ²) below 1e-12, and the
+        centroid only needs the weights relative to the cell's largest."""
         t = self.targets
         dist = self.nf if kind == "guided" else self.eu
-        with np.errstate(invalid="ignore", over="ignore"):
-            g = t.weight[:, None] * np.exp(-np.square(dist) / (2.0 * t.sigma[:, None] ** 2))
-        g = np.where(np.isfinite(g), g, 0.0)
-        return (g * alive[:, None]).sum(0)
+        if not alive.any():
+            return np.full(dist.shape[1], -np.inf)
+        lg = np.log(t.weight[alive])[:, None] - np.square(dist[alive]) / (2.0 * t.sigma[alive, None] ** 2)
+        return np.logaddexp.reduce(lg, axis=0)
+
+
+def _relative(logd: np.ndarray) -> np.ndarray | None:
+    """Weights exp(log d - max) (None when the cell holds no density)."""
+    m = float(np.max(logd)) if len(logd) else -np.inf
+    if not np.isfinite(m):
+        return None
+    return np.exp(logd - m)
 
 
 class Controller:
@@ -142,8 +153,8 @@ class Controller:
         if len(cell) == 0:
             return own
         if self.kind == "lloyd":
-            w = dens[cell]
-            if w.sum() <= 1e-12:
+            w = _relative(dens[cell])
+            if w is None:
                 return own
             c = (w[:, None] * cm.centres[cell]).sum(0) / w.sum()
             return cm.centres[cell[np.argmin(((cm.centres[cell] - c) ** 2).sum(1))]]
@@ -160,8 +171,8 @@ class Controller:
         s_loc = int(np.flatnonzero(cell == start)[0])
         dist, pred = dijkstra(sub, indices=s_loc, return_predecessors=True)
         reach = np.isfinite(dist)
-        w = dens[cell] * reach
-        if w.sum() <= 1e-12:
+        w = _relative(np.where(reach, dens[cell], -np.inf))
+        if w is None:
             return own
         c = (w[:, None] * cm.centres[cell]).sum(0) / w.sum()
         r_idx = np.flatnonzero(reach)

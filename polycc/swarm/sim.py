@@ -76,7 +76,9 @@ class SwarmResult:
 
 
 def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, cfg: SwarmConfig,
-              clearance=None, progress=None) -> SwarmResult:
+              clearance=None, progress=None, goals=None) -> SwarmResult:
+    """Flies the swarm (module docstring); ``goals`` (N, 3) m, if given, replaces the coverage controllers
+    by fixed per-drone goals (pairwise tests: swaps, crossings)."""
     import time
 
     starts = np.asarray(starts, float)
@@ -132,7 +134,11 @@ def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, c
                 else:
                     keep.append(item)
             pending = keep
-        if tick % cfg.ctrl_ms == 1:  # 2. coverage controllers
+        if tick % cfg.ctrl_ms == 1 and goals is not None and tick == 1:
+            for i in range(n):
+                for name, val in zip(("goalX", "goalY", "goalZ"), goals[i]):
+                    apps[i].set_param("polycc", name, float(val))
+        elif tick % cfg.ctrl_ms == 1 and goals is None:  # 2. coverage controllers
             for i in range(n):
                 g = ctrls[i].goal(bcast[i], np.delete(bcast, i, axis=0), alive, dens)
                 for name, val in zip(("goalX", "goalY", "goalZ"), g):
