@@ -79,6 +79,7 @@ class CoverageMap:
         self.spacing = float(nav.spacing)
         self.grid = nav.grid
         self.centres = nav.grid.centres(idx)
+        self.ijk = idx  # (M, 3) grid cell of each free cell
         shape = np.asarray(free.shape)
         lut = -np.ones(free.shape, np.int64)
         lut[tuple(idx.T)] = np.arange(len(idx))
@@ -161,26 +162,33 @@ class Controller:
         return self._guided(own, cell, dens)
 
     def _guided(self, own, cell, dens) -> np.ndarray:
-        from scipy.sparse.csgraph import dijkstra
+        from scipy import ndimage
+
+        from polycc.plan.native import astar
 
         cm = self.cmap
         start = int(cm.nearest(own)[0])
         if not np.any(cell == start):
             cell = np.r_[cell, start]
-        sub = cm.graph[cell][:, cell]
-        s_loc = int(np.flatnonzero(cell == start)[0])
-        dist, pred = dijkstra(sub, indices=s_loc, return_predecessors=True)
-        reach = np.isfinite(dist)
+        mask = np.zeros(cm.lut.shape, np.uint8)
+        mask[tuple(cm.ijk[cell].T)] = 1
+        labels, _ = ndimage.label(mask, structure=np.ones((3, 3, 3)))  # 26-connected, as the grid moves
+        reach = labels[tuple(cm.ijk[cell].T)] == labels[tuple(cm.ijk[start])]
         w = _relative(np.where(reach, dens[cell], -np.inf))
         if w is None:
             return own
         c = (w[:, None] * cm.centres[cell]).sum(0) / w.sum()
         r_idx = np.flatnonzero(reach)
-        tgt = int(r_idx[np.argmin(((cm.centres[cell[r_idx]] - c) ** 2).sum(1))])
-        node = tgt
-        while node != s_loc and dist[node] > LOOKAHEAD_M:  # walk back along the path to the lookahead
-            node = int(pred[node])
-        return cm.centres[cell[node]] if node != s_loc else (cm.centres[cell[tgt]] if tgt == s_loc else own)
+        tgt = int(cell[r_idx[np.argmin(((cm.centres[cell[r_idx]] - c) ** 2).sum(1))]])
+        if tgt == start:
+            return cm.centres[start]
+        flat = cm.grid.flat(cm.ijk[[start, tgt]])
+        cost, path, _ = astar(mask, cm.spacing, flat[:1], np.zeros(1), flat[1:], np.zeros(1), cm.ijk[tgt], 0.0)
+        if not np.isfinite(cost) or len(path) < 2:
+            return own
+        pts = cm.grid.centres(cm.grid.unflat(path))
+        along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
+        return pts[int(np.searchsorted(along, LOOKAHEAD_M, side="right")) - 1]
 
     def _repulsive(self, own, others, alive) -> np.ndarray:
         t = self.cmap.targets
