@@ -174,6 +174,41 @@ def arm_cost() -> dict:
     return {"states": res, "extra_high_max": max(r["extra_high"] for r in res)}
 
 
+def instances_cost(header: Path, n: int = 16) -> dict:
+    """N app instances: copies of the shared object loaded in this process (what swarm-sim does)
+    against one process per drone (each a fresh interpreter importing the same module), measured in
+    one run: wall time to get N ready instances and the resident memory they add."""
+    import subprocess
+
+    from polycc.swarm.instances import drone_apps
+
+    def rss_mb() -> float:
+        with open("/proc/self/status") as f:
+            return next(int(ln.split()[1]) for ln in f if ln.startswith("VmRSS")) / 1024.0
+
+    drone_apps(header, 1)  # build once (not timed: both ways need it)
+    r0, t0 = rss_mb(), time.perf_counter()
+    apps = drone_apps(header, n)
+    for a in apps:
+        a.reset()
+    copies = {"wall_s": time.perf_counter() - t0, "rss_mb": rss_mb() - r0}
+    code = ("import sys; from polycc.sim.app_ffi import AppSim; a = AppSim(sys.argv[1]); a.reset(); "
+            "print('ok', flush=True); sys.stdin.read()")
+    t0 = time.perf_counter()
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(header)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True) for _ in range(n)]
+    for p in procs:
+        p.stdout.readline()
+    wall = time.perf_counter() - t0
+    rss = 0.0
+    for p in procs:
+        with open(f"/proc/{p.pid}/status") as f:
+            rss += next(int(ln.split()[1]) for ln in f if ln.startswith("VmRSS")) / 1024.0
+        p.stdin.close()
+        p.wait()
+    return {"n": n, "copies": copies, "processes": {"wall_s": wall, "rss_mb": rss}}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="demo arena, n in {2, 4}, 2 trials, t-max 40 s")
@@ -183,6 +218,7 @@ def main(argv=None) -> int:
     ap.add_argument("--t-max", type=float, default=60.0, help="simulated seconds per trial (default: 60)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--arm", action="store_true", help="also measure the on-board cost of the neighbour terms")
+    ap.add_argument("--instances", action="store_true", help="also measure N app copies against N processes")
     ap.add_argument("--name", default="bench_swarm", help="results file name (default: bench_swarm)")
     a = ap.parse_args(argv)
     arenas = ["demo"] if a.quick else [s for s in a.arenas.split(",") if s]
@@ -202,6 +238,13 @@ def main(argv=None) -> int:
                           "radius_m": RADIUS, "controllers": list(CONTROLLERS), "seed": a.seed},
                "table": {"header": header, "rows": table}, "trials": rows, "wall_s": time.perf_counter() - t0,
                "peak_rss_mb": peak_rss_mb()}
+    if a.instances:
+        build, _ = arena_build(arenas[0])
+        ic = instances_cost(build / "polytopes.h")
+        payload["instances"] = ic
+        print_table("16 app instances", ["how", "wall s", "added RSS MB"],
+                    [["copies of the .so, one process", ic["copies"]["wall_s"], ic["copies"]["rss_mb"]],
+                     ["one process per drone", ic["processes"]["wall_s"], ic["processes"]["rss_mb"]]])
     if a.arm:
         cost = arm_cost()
         payload["onboard"] = cost
