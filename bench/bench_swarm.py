@@ -45,6 +45,7 @@ ARENA_NAMES = {"demo": "demo arena", "captures": "capture arena", "room": "1.5M 
 N_POLYS = 150
 GRID = 0.15
 RADIUS = 0.1
+RATE_HZ = 100  # the apps' loop rate (as bench_nav): 10 ms periods keep the 16-drone rows affordable
 
 
 def arena_build(name: str):
@@ -74,7 +75,7 @@ def run_cell(name: str, build: Path, ellipsoids, n: int, trials: int, t_max: flo
         for kind in CONTROLLERS:
             t0 = time.perf_counter()
             r = run_swarm(build / "polytopes.h", cmap, starts, targets,
-                          SwarmConfig(controller=kind, t_max_s=t_max, radius=RADIUS), clearance)
+                          SwarmConfig(controller=kind, t_max_s=t_max, radius=RADIUS, rate_hz=RATE_HZ), clearance)
             rows.append({"arena": name, "n": n, "trial": trial, "controller": kind,
                          "drone_drone": r.pair_collisions, "drone_obstacle": sum(1 for c in r.obstacle_collisions
                                                                                  if c > 0),
@@ -230,11 +231,13 @@ def main(argv=None) -> int:
         build, ell = arena_build(name)
         for n in ns:
             rows += run_cell(name, build, ell, n, trials, t_max, a.seed)
+            write_json(a.name + "_partial", {"trials": rows})  # what ran so far, if the run is stopped
     table = summarize(rows, t_max)
     header = ["arena", "n", "controller", "trials", "coll d-d", "coll d-o", "coverage", "cov min", "full",
               "task med s", "task mean s", "min d-d m", "min clear m", "us/drone-tick"]
     print_table(f"swarm coverage (task time: trials missing a peak count as {t_max:g} s)", header, table)
     payload = {"config": {"arenas": arenas, "ns": ns, "trials": trials, "t_max_s": t_max, "grid_m": GRID,
+                          "rate_hz": RATE_HZ,
                           "radius_m": RADIUS, "controllers": list(CONTROLLERS), "seed": a.seed},
                "table": {"header": header, "rows": table}, "trials": rows, "wall_s": time.perf_counter() - t0,
                "peak_rss_mb": peak_rss_mb()}

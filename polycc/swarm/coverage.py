@@ -124,6 +124,13 @@ class CoverageMap:
         return np.logaddexp.reduce(lg, axis=0)
 
 
+def voronoi_cells(cm: CoverageMap, gens: np.ndarray) -> np.ndarray:
+    """For every free cell, the index of the nearest generator (broadcast position)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(gens, float).reshape(-1, 3)).query(cm.centres)[1]
+
+
 def _relative(logd: np.ndarray) -> np.ndarray | None:
     """Weights exp(log d - max) (None when the cell holds no density)."""
     m = float(np.max(logd)) if len(logd) else -np.inf
@@ -141,15 +148,18 @@ class Controller:
         self.cmap, self.kind = cmap, kind
         self.cell = np.zeros(0, np.int64)  # the free cells of the last Voronoi cell (for the plot)
 
-    def goal(self, own: np.ndarray, others: np.ndarray, alive: np.ndarray, dens: np.ndarray) -> np.ndarray:
-        """The next goal (3,) m from the own and the neighbours' broadcast positions."""
+    def goal(self, own: np.ndarray, others: np.ndarray, alive: np.ndarray, dens: np.ndarray,
+             cell: np.ndarray | None = None) -> np.ndarray:
+        """The next goal (3,) m from the own and the neighbours' broadcast positions; ``cell`` (free-cell
+        indices of the drone's Voronoi cell among those positions) may be given when the caller has
+        partitioned the cells for every drone at once (:func:`voronoi_cells`, the same result)."""
         cm = self.cmap
         own = np.asarray(own, float)
         if self.kind == "repulsive":
             return self._repulsive(own, others, alive)
-        gens = np.vstack([own[None], np.asarray(others, float).reshape(-1, 3)])
-        d2 = ((cm.centres[:, None, :] - gens[None]) ** 2).sum(2)
-        cell = np.flatnonzero(np.argmin(d2, axis=1) == 0)
+        if cell is None:
+            gens = np.vstack([own[None], np.asarray(others, float).reshape(-1, 3)])
+            cell = np.flatnonzero(voronoi_cells(cm, gens) == 0)
         self.cell = cell
         if len(cell) == 0:
             return own
@@ -170,10 +180,13 @@ class Controller:
         start = int(cm.nearest(own)[0])
         if not np.any(cell == start):
             cell = np.r_[cell, start]
-        mask = np.zeros(cm.lut.shape, np.uint8)
-        mask[tuple(cm.ijk[cell].T)] = 1
+        lo = cm.ijk[cell].min(0)
+        loc = cm.ijk[cell] - lo  # the cell's bounding box of the grid, local indices
+        mask = np.zeros(tuple(loc.max(0) + 1), np.uint8)
+        mask[tuple(loc.T)] = 1
         labels, _ = ndimage.label(mask, structure=np.ones((3, 3, 3)))  # 26-connected, as the grid moves
-        reach = labels[tuple(cm.ijk[cell].T)] == labels[tuple(cm.ijk[start])]
+        s_loc = cm.ijk[start] - lo
+        reach = labels[tuple(loc.T)] == labels[tuple(s_loc)]
         w = _relative(np.where(reach, dens[cell], -np.inf))
         if w is None:
             return own
@@ -182,11 +195,11 @@ class Controller:
         tgt = int(cell[r_idx[np.argmin(((cm.centres[cell[r_idx]] - c) ** 2).sum(1))]])
         if tgt == start:
             return cm.centres[start]
-        flat = cm.grid.flat(cm.ijk[[start, tgt]])
-        cost, path, _ = astar(mask, cm.spacing, flat[:1], np.zeros(1), flat[1:], np.zeros(1), cm.ijk[tgt], 0.0)
+        ends = np.ravel_multi_index((cm.ijk[[start, tgt]] - lo).T, mask.shape)
+        cost, path, _ = astar(mask, cm.spacing, ends[:1], np.zeros(1), ends[1:], np.zeros(1), cm.ijk[tgt] - lo, 0.0)
         if not np.isfinite(cost) or len(path) < 2:
             return own
-        pts = cm.grid.centres(cm.grid.unflat(path))
+        pts = cm.grid.centres(np.stack(np.unravel_index(path, mask.shape), axis=-1) + lo)
         along = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
         return pts[int(np.searchsorted(along, LOOKAHEAD_M, side="right")) - 1]
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from polycc.onboard.app import pack_neighbour
 from polycc.sim.dynamics import Vehicle, make_dynamics
-from polycc.swarm.coverage import Controller, CoverageMap, Targets
+from polycc.swarm.coverage import Controller, CoverageMap, Targets, voronoi_cells
 from polycc.swarm.instances import drone_apps
 
 
@@ -119,12 +119,18 @@ def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, c
     offsets = [j * cfg.bcast_ms // max(n, 1) for j in range(n)]
     wall0 = time.perf_counter()
     tick = 0
+    whole = cfg.dynamics == "integrator"
+    period_ms = int(math.ceil(1000.0 / cfg.rate_hz))
+    P = starts.copy()
     for tick in range(1, t_end + 1):
+        moved = False
         for j in range(n):  # 1. broadcasts
             if (tick - offsets[j]) % cfg.bcast_ms == 0:
                 pe, _ = vehicles[j].estimate()
                 bcast[j] = pe.astype(np.float32)
-                pkt = pack_neighbour(j, bcast[j], cfg.latency_ms + delay_ms + 1, cfg.radius)
+                # stated age: latency, estimator delay, and one app period (the integrator is stepped a
+                # whole period ahead, so the estimate read between ticks may be up to a period newer)
+                pkt = pack_neighbour(j, bcast[j], cfg.latency_ms + delay_ms + period_ms + 1, cfg.radius)
                 pending.extend((tick + cfg.latency_ms, i, pkt) for i in range(n) if i != j)
         if pending:
             keep = []
@@ -139,8 +145,11 @@ def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, c
                 for name, val in zip(("goalX", "goalY", "goalZ"), goals[i]):
                     apps[i].set_param("polycc", name, float(val))
         elif tick % cfg.ctrl_ms == 1 and goals is None:  # 2. coverage controllers
+            # every drone partitions the free cells among the same broadcast positions: computed once
+            lab = voronoi_cells(cmap, bcast) if cfg.controller != "repulsive" else None
             for i in range(n):
-                g = ctrls[i].goal(bcast[i], np.delete(bcast, i, axis=0), alive, dens)
+                cell = None if lab is None else np.flatnonzero(lab == i)
+                g = ctrls[i].goal(bcast[i], np.delete(bcast, i, axis=0), alive, dens, cell)
                 for name, val in zip(("goalX", "goalY", "goalZ"), g):
                     apps[i].set_param("polycc", name, float(val))
         for i in range(n):  # 3. apps and vehicles
@@ -158,13 +167,26 @@ def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, c
                 statuses[i][st] = statuses[i].get(st, 0) + 1
                 while lib.shim_appchannel_pop(replies[i], 32) > 0:  # the ground would read these
                     pass
-            pos32[i][0:3] = veh.p.tolist()
-            vel32[i][0:3] = veh.v.tolist()
-            lib.shim_stabilizer_step(pos32[i], vel32[i], 0.0, sps[i])
-            veh.step(sps[i], 1e-3)
-        P = np.array([v.p for v in vehicles])
-        if n > 1:
-            d = np.linalg.norm(P[iu[0]] - P[iu[1]], axis=1)
+                moved = True
+                if whole:  # the single integrator flies the held setpoint exactly: one step per period
+                    pos32[i][0:3] = veh.p.tolist()
+                    vel32[i][0:3] = veh.v.tolist()
+                    lib.shim_stabilizer_step(pos32[i], vel32[i], 0.0, sps[i])
+                    veh.step(sps[i], (next_app[i] - tick) * 1e-3)
+            if not whole:
+                pos32[i][0:3] = veh.p.tolist()
+                vel32[i][0:3] = veh.v.tolist()
+                lib.shim_stabilizer_step(pos32[i], vel32[i], 0.0, sps[i])
+                veh.step(sps[i], 1e-3)
+                moved = True
+        if moved:
+            P_prev, P = P, np.array([v.p for v in vehicles])
+        if n > 1 and moved:
+            # exact minimum over the step: relative motion is linear within it (held setpoints)
+            r0, r1 = P_prev[iu[0]] - P_prev[iu[1]], P[iu[0]] - P[iu[1]]
+            dr = r1 - r0
+            s_ = np.clip(-(r0 * dr).sum(1) / np.maximum((dr * dr).sum(1), 1e-300), 0.0, 1.0)
+            d = np.linalg.norm(r0 + s_[:, None] * dr, axis=1)
             m = float(d.min())
             if m < min_pair:
                 min_pair = m
