@@ -126,9 +126,9 @@ class CoverageMap:
 
 def voronoi_cells(cm: CoverageMap, gens: np.ndarray) -> np.ndarray:
     """For every free cell, the index of the nearest generator (broadcast position)."""
-    from scipy.spatial import cKDTree
-
-    return cKDTree(np.asarray(gens, float).reshape(-1, 3)).query(cm.centres)[1]
+    g = np.asarray(gens, float).reshape(-1, 3)
+    d2 = (g * g).sum(1)[None, :] - 2.0 * (cm.centres @ g.T)  # |c|^2 is common to every generator
+    return np.argmin(d2, axis=1)
 
 
 def _relative(logd: np.ndarray) -> np.ndarray | None:

@@ -26,6 +26,19 @@ from polycc.sim.dynamics import Vehicle, make_dynamics
 from polycc.swarm.coverage import Controller, CoverageMap, Targets, voronoi_cells
 from polycc.swarm.instances import drone_apps
 
+THIN_M = 0.01  # m: trajectory samples closer than this to the last kept one are dropped (see run_swarm)
+
+
+def _thin(P: np.ndarray, eps: float) -> np.ndarray:
+    keep, last = [0], P[0]
+    for i in range(1, len(P)):
+        if np.linalg.norm(P[i] - last) > eps:
+            keep.append(i)
+            last = P[i]
+    if keep[-1] != len(P) - 1:
+        keep.append(len(P) - 1)
+    return P[keep]
+
 
 @dataclass
 class SwarmConfig:
@@ -215,8 +228,11 @@ def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, c
         if clearance is not None:
             from polycc.sim.clearance import densify
 
-            c, hits, _ = clearance.evaluate(densify(t), cfg.radius)
-            clear.append(float(c))
+            # hovering drones repeat their position: keep the samples that moved > THIN_M since the last
+            # kept one and check those with the radius enlarged by THIN_M (every dropped sample is within
+            # THIN_M of a kept one), so a collision is never missed and the clearance is a lower bound
+            c, hits, _ = clearance.evaluate(densify(_thin(t, THIN_M), THIN_M), cfg.radius + THIN_M)
+            clear.append(float(c))  # a lower bound (THIN_M): the drone may have been up to 1 cm further
             obst.append(int(hits))
         else:
             clear.append(math.nan)
