@@ -304,7 +304,11 @@ static void serviceAppChannel(void)
             memcpy(pj, rx + 2, 12);
             memcpy(&age, rx + 14, 2);
             memcpy(&rmm, rx + 16, 2);
-            (void)polycc_swarm_report(&swarm, rx[1], pj, (uint32_t)age + swarmPeriodMs, (float)rmm * 0.001f, x);
+            if (age == POLYCC_APP_NBR_FORGET) { /* the ground says it landed or left */
+                (void)polycc_swarm_forget(&swarm, rx[1]);
+            } else {
+                (void)polycc_swarm_report(&swarm, rx[1], pj, (uint32_t)age + swarmPeriodMs, (float)rmm * 0.001f, x);
+            }
             lNbr = (uint8_t)swarm.count;
         }
         tx[0] = lStatus;

@@ -102,6 +102,7 @@
  * x, y, z (float, m), age (uint16, ms: latency and estimate error / V), radius (uint16, mm). */
 #define POLYCC_APP_NBR_MAGIC 0x4eu
 #define POLYCC_APP_NBR_BYTES 18u
+#define POLYCC_APP_NBR_FORGET 0xffffu /* age field: remove this neighbour (it landed or left) */
 #define POLYCC_APP_DEFAULT_SWARM_V 1.0f /* m/s: param polycc.swarmV */
 /* Certified bound of polycc_swarm_step's extra cost over polycc_step with POLYCC_SWARM_MAX neighbours
  * (Cortex-M4F cycles, from its operation count; docs/swarm.md), added to the scene's worst case. */

@@ -96,6 +96,19 @@ int polycc_swarm_report(polycc_swarm_t *sw, uint8_t id, const float p_j[3], uint
     return k;
 }
 
+int polycc_swarm_forget(polycc_swarm_t *sw, uint8_t id)
+{
+    uint32_t i;
+    for (i = 0; i < POLYCC_SWARM_MAX; ++i) {
+        if (sw->nbr[i].used && sw->nbr[i].id == id) {
+            memset(&sw->nbr[i], 0, sizeof sw->nbr[i]);
+            sw->count -= 1u;
+            return 1;
+        }
+    }
+    return 0;
+}
+
 void polycc_swarm_age(polycc_swarm_t *sw, uint32_t dt_ms)
 {
     uint32_t i;

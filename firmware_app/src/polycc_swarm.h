@@ -51,6 +51,9 @@ void polycc_swarm_reset(polycc_swarm_t *sw);
  * p0.  Returns the slot, or -1 (nothing stored) for non-finite or out-of-range input or a full table. */
 int polycc_swarm_report(polycc_swarm_t *sw, uint8_t id, const float p_j[3], uint32_t age_ms, float r_j,
                         const float p0[3]);
+/* Removes neighbour id from the table (a drone that landed or left); returns 1 if it was there.
+ * Its certificate is dropped with it: only the ground, which knows the drone is down, sends this. */
+int polycc_swarm_forget(polycc_swarm_t *sw, uint8_t id);
 /* Adds dt_ms to every age (saturating at POLYCC_SWARM_AGE_MAX_MS). */
 void polycc_swarm_age(polycc_swarm_t *sw, uint32_t dt_ms);
 /* 1 if some neighbour is older than timeout_ms. */

@@ -44,6 +44,7 @@ CPU_SHARE_PERCENT = 50  # POLYCC_APP_CPU_SHARE_PERCENT: the worst case must fit 
 TICK_RATE_HZ = 1000  # FreeRTOS configTICK_RATE_HZ on the Crazyflie
 SWARM_WORST_CYCLES = 6000  # POLYCC_APP_SWARM_WORST_CYCLES: the neighbour terms' bound, added to the scene's
 NBR_MAGIC = 0x4E  # POLYCC_APP_NBR_MAGIC: app-channel neighbour report
+NBR_FORGET = 0xFFFF  # POLYCC_APP_NBR_FORGET: this age removes the neighbour (it landed or left)
 NBR_FORMAT = "<BBfffHH"  # 'N', id, x, y, z (m), age (ms), radius (mm): POLYCC_APP_NBR_BYTES = 18
 
 
@@ -61,12 +62,19 @@ def app_rate_hz(worst_cycles: int, requested_hz: int = DEFAULT_RATE_HZ) -> int |
     return TICK_RATE_HZ // t
 
 
+def pack_forget(nid: int) -> bytes:
+    """The app-channel record that removes neighbour ``nid`` from the app's table."""
+    import struct
+
+    return struct.pack(NBR_FORMAT, NBR_MAGIC, int(nid) & 0xFF, 0.0, 0.0, 0.0, NBR_FORGET, 0)
+
+
 def pack_neighbour(nid: int, pos, age_ms: float, radius_m: float) -> bytes:
     """The app-channel neighbour report (POLYCC_APP_NBR_BYTES, docs/swarm.md): id, position (m), age
     and radius rounded up to whole ms / mm (so the app's buffer is never smaller than stated)."""
     import math
     import struct
 
-    age = min(65535, max(0, math.ceil(age_ms)))
+    age = min(NBR_FORGET - 1, max(0, math.ceil(age_ms)))  # a stated age never means "forget"
     rmm = min(65535, max(0, math.ceil(radius_m * 1000.0 - 1e-9)))
     return struct.pack(NBR_FORMAT, NBR_MAGIC, int(nid) & 0xFF, float(pos[0]), float(pos[1]), float(pos[2]), age, rmm)

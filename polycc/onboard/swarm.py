@@ -86,6 +86,14 @@ class Swarm:
         self.slots[k] = Neighbour(n, F(a), F(b), r_j, min(int(age_ms), AGE_MAX_MS), int(nid))
         return k
 
+    def forget(self, nid: int) -> bool:
+        """Mirror of ``polycc_swarm_forget``."""
+        for k, s in enumerate(self.slots):
+            if s is not None and s.id == nid:
+                self.slots[k] = None
+                return True
+        return False
+
     def age(self, dt_ms: int) -> None:
         for s in self.slots:
             if s is not None:

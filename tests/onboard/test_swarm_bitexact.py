@@ -35,6 +35,8 @@ def random_case(rng, x):
                     float(np.float32(rng.uniform(0.0, 0.3))), p0.astype(np.float32)))
         if rng.random() < 0.3:
             ops.append(("age", int(rng.integers(1, 200))))
+        if rng.random() < 0.1:
+            ops.append(("forget", int(rng.integers(0, 20))))
     if rng.random() < 0.2:
         ops.append(("report", 1, np.full(3, np.nan, np.float32), 0, 0.1, x))  # refused
     return ops
@@ -49,6 +51,8 @@ def apply(ops, ref: SW.Swarm, mod, csw):
             k_ref = ref.report(nid, pj, age, rj, p0)
             k_c = mod.lib.polycc_swarm_report(csw, nid, f3(pj), age, float(np.float32(rj)), f3(p0))
             assert k_ref == k_c
+        elif op[0] == "forget":
+            assert ref.forget(op[1]) == bool(mod.lib.polycc_swarm_forget(csw, op[1]))
         else:
             ref.age(op[1])
             mod.lib.polycc_swarm_age(csw, op[1])

@@ -123,6 +123,8 @@ def test_table_refuses_bad_input_and_overflow():
     assert sw.report(99, [1, 1, 1], 0, 0.1, x) == -1  # full
     assert sw.report(5, [1, 1, 1], 0, 0.1, x) == 5  # an update keeps its slot
     assert sw.count == SW.MAX
+    assert sw.forget(5) and not sw.forget(5) and sw.count == SW.MAX - 1
+    assert sw.report(99, [1, 1, 1], 0, 0.1, x) == 5  # the freed slot
 
 
 def test_coincident_neighbour_is_inside():

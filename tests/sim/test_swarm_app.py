@@ -10,7 +10,7 @@ import pytest
 from polycc.codegen.header import write_outputs
 from polycc.geometry.halfplanes import axis_box
 from polycc.onboard import swarm as SW
-from polycc.onboard.app import pack_neighbour
+from polycc.onboard.app import pack_forget, pack_neighbour
 from polycc.onboard.barrier import Params
 from polycc.sim.app_ffi import AppSim
 
@@ -102,3 +102,6 @@ def test_silent_neighbour_holds_position(app):
     _push(app, pack_neighbour(3, [3.5, 2.0, 1.0], 0, 0.1))
     app.tick(t)
     assert app.get_log("polycc", "status") == 1
+    _push(app, pack_forget(3))  # the ground drops it (landed): no hold when it goes silent
+    run(t + 700)
+    assert app.get_log("polycc", "nNbr") == 0 and app.get_log("polycc", "status") == 1
