@@ -104,3 +104,27 @@ def test_swarm_sim_cli_on_the_demo_arena(tmp_path):
     assert s["collisions"] == 0 and s["collisions_drone_drone"] == 0 and s["collisions_drone_obstacle"] == 0
     assert s["min_inter_drone_m"] >= 0.2 and s["coverage_ratio"] == 1.0
     assert (tmp_path / "b" / "coverage.png").stat().st_size > 10_000
+
+
+def test_targets_file_and_cli_errors_are_one_line(tmp_path, room, capsys):
+    from polycc.cli import main
+    from polycc.errors import PolyccError
+    from polycc.swarm.coverage import load_targets
+
+    good = tmp_path / "t.json"
+    good.write_text(json.dumps({"targets": [{"x": 1, "y": 2, "z": 1, "sigma": 0.3}, {"x": 2, "y": 2, "z": 1}]}))
+    t = load_targets(good)
+    assert t.mu.shape == (2, 3) and list(t.sigma) == [0.3, 0.4] and list(t.weight) == [1.0, 1.0]
+    bad = tmp_path / "bad.json"
+    for text in ("not json", json.dumps({"targets": []}), json.dumps({"targets": [{"x": 1, "y": 2, "z": 1,
+                                                                                     "sigma": -1}]})):
+        bad.write_text(text)
+        with pytest.raises(PolyccError):
+            load_targets(bad)
+    d, _, _ = room
+    assert main(["swarm-sim", str(tmp_path / "nowhere"), "--drones", "2"]) == 2  # no polytopes.h
+    assert main(["swarm-sim", str(d), "--drones", "2"]) == 2  # the manifest names no scene
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "polycc build" in err and "--scene" in err
+    assert main(["swarm-sim", str(d), "--drones", "17"]) == 2  # the app's table holds 16
+    assert "out of range" in capsys.readouterr().err
