@@ -25,6 +25,7 @@ RANK = {
     "pipeline": 7,
     "plan": 7.5,  # planner on the certified free space: may import onboard, geometry, budget; the pipeline does not
     "sim": 8, "ground": 8, "view": 8,
+    "swarm": 8.5,  # N app instances, coverage controllers: imports sim and plan
     "testing": 9,
     "cli": 10, "polycc": 10, "__main__": 11,
 }

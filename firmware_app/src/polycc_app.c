@@ -46,6 +46,7 @@
 #include "polycc_app.h"
 #include "polycc_controller.h"
 #include "polycc_kernel.h"
+#include "polycc_swarm.h" /* swarm: neighbour terms (docs/swarm.md) */
 
 /* The generated scene: -DPOLYCC_SCENE_HEADER='"/abs/path/polytopes.h"' or polytopes.h on the include path. */
 #ifdef POLYCC_SCENE_HEADER
@@ -102,6 +103,13 @@ static uint32_t lastBits[3];
 static uint32_t sameTicks; /* ms for which the estimate bits did not change */
 static setpoint_t setpoint;
 
+/* ---- swarm: neighbours fed over the app channel (docs/swarm.md) ---- */
+static polycc_swarm_t swarm;
+static float pSwarmV;       /* param polycc.swarmV: the neighbours' speed bound, m/s */
+static uint8_t lNbr;        /* log polycc.nNbr */
+static uint32_t swarmTick;  /* tick of the last ageing */
+static uint32_t swarmPeriodMs = 1u; /* the last period: a queued report waited at most this long */
+
 static uint32_t floatBits(float f)
 {
     uint32_t b;
@@ -118,7 +126,7 @@ static bool coordOk(float v)
 static uint32_t minPeriodTicks(void)
 {
     const uint64_t perTick = (uint64_t)POLYCC_APP_CPU_HZ / (uint64_t)configTICK_RATE_HZ;
-    const uint64_t need = (uint64_t)POLYCC_SCENE_WORST_CYCLES * 100u;
+    const uint64_t need = ((uint64_t)POLYCC_SCENE_WORST_CYCLES + POLYCC_APP_SWARM_WORST_CYCLES) * 100u;
     const uint64_t avail = perTick * POLYCC_APP_CPU_SHARE_PERCENT;
     uint64_t t = (need + avail - 1u) / avail;
     return t < 1u ? 1u : (uint32_t)t;
@@ -291,6 +299,19 @@ static void serviceAppChannel(void)
         heartbeatSeen = true;
         lastHeartbeat = xTaskGetTickCount();
         readVector(idX, idY, idZ, haveEstimate, x);
+        if (n == POLYCC_APP_NBR_BYTES && rx[0] == POLYCC_APP_NBR_MAGIC && haveEstimate) { /* swarm: a neighbour */
+            float pj[3];
+            uint16_t age, rmm;
+            memcpy(pj, rx + 2, 12);
+            memcpy(&age, rx + 14, 2);
+            memcpy(&rmm, rx + 16, 2);
+            if (age == POLYCC_APP_NBR_FORGET) { /* the ground says it landed or left */
+                (void)polycc_swarm_forget(&swarm, rx[1]);
+            } else {
+                (void)polycc_swarm_report(&swarm, rx[1], pj, (uint32_t)age + swarmPeriodMs, (float)rmm * 0.001f, x);
+            }
+            lNbr = (uint8_t)swarm.count;
+        }
         tx[0] = lStatus;
         tx[1] = pEnable;
         memcpy(tx + 2, &lPsi, 4);
@@ -386,6 +407,11 @@ void polycc_app_init(void)
     haveThrust = logVarIdIsValid(idThrust);
     haveVariance = logVarIdIsValid(idVarX) && logVarIdIsValid(idVarY) && logVarIdIsValid(idVarZ);
     memset(&trace, 0, sizeof trace);
+    polycc_swarm_reset(&swarm); /* swarm */
+    pSwarmV = POLYCC_APP_DEFAULT_SWARM_V;
+    lNbr = 0u;
+    swarmTick = xTaskGetTickCount();
+    swarmPeriodMs = 1u;
     (void)periodTicks(pRateHz);
     polycc_controller_init(); /* shield (polycc_controller.c): off, defaults */
 }
@@ -477,6 +503,12 @@ uint32_t polycc_app_tick(void)
     uint8_t status;
     uint32_t period = periodTicks(pRateHz);
 
+    { /* swarm: age the neighbour reports by the time since the last tick (1 tick = 1 ms) */
+        uint32_t now = xTaskGetTickCount();
+        polycc_swarm_age(&swarm, (now - swarmTick) * (1000u / configTICK_RATE_HZ));
+        swarmTick = now;
+        swarmPeriodMs = period * (1000u / configTICK_RATE_HZ);
+    }
     serviceAppChannel();
     polycc_controller_plan((uint32_t)xTaskGetTickCount()); /* shield (polycc_controller.c): a decision when due */
     if (pEnable == 0u) {
@@ -536,11 +568,17 @@ uint32_t polycc_app_tick(void)
     }
     memcpy(lastGood, x, sizeof lastGood);
     haveLastGood = true;
+    if (polycc_swarm_stale(&swarm, POLYCC_SWARM_TIMEOUT_MS)) { /* swarm: a neighbour fell silent */
+        lActive = 0u;
+        lStatus = POLYCC_STATUS_NEIGHBOUR_LOST;
+        holdPosition(x);
+        return period;
+    }
 
     prm.v_max = brakeSpeed(pVmax);
 
     t0 = usecTimestamp();
-    (void)polycc_step(&polycc_scene, &prm, x, goal, &out);
+    (void)polycc_swarm_step(&polycc_scene, &prm, &swarm, pSwarmV, x, goal, &out); /* polycc_step without neighbours */
     t1 = usecTimestamp();
     lEvalUs = (uint32_t)(t1 - t0);
     lActive = (out.flags & POLYCC_FLAG_ACTIVE) ? 1u : 0u;
@@ -604,6 +642,8 @@ PARAM_ADD(PARAM_FLOAT, radius, &pRadius)
 /** @brief Requested loop rate, Hz (10..1000, whole 1 ms ticks, lowered until the scene's worst case fits;
  * log polycc.rate is the rate used; default 500) */
 PARAM_ADD(PARAM_UINT16, rateHz, &pRateHz)
+/** @brief Swarm: the neighbours' speed bound V, m/s; stale reports enlarge the buffer by V x age (default 1) */
+PARAM_ADD(PARAM_FLOAT, swarmV, &pSwarmV)
 PARAM_GROUP_STOP(polycc)
 
 /**
@@ -624,8 +664,11 @@ LOG_ADD(LOG_UINT8, active, &lActive)
 LOG_ADD(LOG_UINT32, evalUs, &lEvalUs)
 /** @brief 0 disabled, 1 ok (engaged), 2 no estimate, 3 bad estimate, 4 stale estimate, 5 inside an obstacle,
  * 6 kernel invalid (2-6 hold position), 7 not flying (take off first), 8 waiting for the high-level commander,
- * 9 controller is not PID, 10 link lost (landing), 11 supervisor locked/crashed/tumbled, 12 scene too slow */
+ * 9 controller is not PID, 10 link lost (landing), 11 supervisor locked/crashed/tumbled, 12 scene too slow,
+ * 13 a neighbour fell silent (holding) */
 LOG_ADD(LOG_UINT8, status, &lStatus)
 /** @brief Loop rate in use, Hz (rateHz, lowered until the scene's certified worst case fits half a tick) */
 LOG_ADD(LOG_UINT16, rate, &lRate)
+/** @brief Swarm: neighbours in the table (reports received over the app channel) */
+LOG_ADD(LOG_UINT8, nNbr, &lNbr)
 LOG_GROUP_STOP(polycc)

@@ -42,7 +42,9 @@
                                            a high-level landing, enable cleared */
 #define POLYCC_STATUS_SUPERVISOR 11u    /* supervisor locked, crashed or tumbled: nothing sent */
 #define POLYCC_STATUS_TOO_SLOW 12u      /* the scene's worst case does not fit even POLYCC_APP_MIN_RATE_HZ: refused */
-#define POLYCC_APP_STATUS_COUNT 13u
+#define POLYCC_STATUS_NEIGHBOUR_LOST 13u /* swarm: a neighbour's report is older than POLYCC_SWARM_TIMEOUT_MS:
+                                           holding position (docs/swarm.md) */
+#define POLYCC_APP_STATUS_COUNT 14u
 
 /* Defaults of the polycc parameter group. */
 #define POLYCC_APP_DEFAULT_RATE_HZ 500u
@@ -95,6 +97,16 @@
 #define POLYCC_APP_BRAKE_ACC 3.9f /* m/s^2: g tan(22 deg), the stock controller's tilt limit */
 #endif
 #define POLYCC_APP_BRAKE_VMIN 0.05f /* m/s */
+
+/* Swarm (docs/swarm.md): app-channel neighbour report, little-endian, 18 bytes: 'N', id (uint8),
+ * x, y, z (float, m), age (uint16, ms: latency and estimate error / V), radius (uint16, mm). */
+#define POLYCC_APP_NBR_MAGIC 0x4eu
+#define POLYCC_APP_NBR_BYTES 18u
+#define POLYCC_APP_NBR_FORGET 0xffffu /* age field: remove this neighbour (it landed or left) */
+#define POLYCC_APP_DEFAULT_SWARM_V 1.0f /* m/s: param polycc.swarmV */
+/* Certified bound of polycc_swarm_step's extra cost over polycc_step with POLYCC_SWARM_MAX neighbours
+ * (Cortex-M4F cycles, from its operation count; docs/swarm.md), added to the scene's worst case. */
+#define POLYCC_APP_SWARM_WORST_CYCLES 6000u
 
 /* App-channel reply to every packet from the ground (little-endian, 18 bytes, then up to 12
  * bytes of the request as an echo): status (uint8), enable (uint8), psi (float, m), x, y, z

@@ -28,6 +28,7 @@ COMMAND_MODULES = [
     "plan",
     "sim",
     "sim_device",
+    "swarm_sim",
     "fly",
     "flash",
 ]

@@ -43,10 +43,11 @@ from polycc.sim.kernel_ffi import build_cffi
 
 SRC = resources.firmware_src()
 SHIMS = resources.shims()
-APP_SOURCES = [SRC / "polycc_app.c", SRC / "polycc_kernel.c", SRC / "polycc_shield.c", SRC / "polycc_controller.c"]
+APP_SOURCES = [SRC / "polycc_app.c", SRC / "polycc_kernel.c", SRC / "polycc_shield.c", SRC / "polycc_controller.c",
+               SRC / "polycc_swarm.c"]
 SHIM_SOURCES = sorted(SHIMS.glob("sim_*.c"))
 HEADERS = [SRC / "polycc_app.h", SRC / "polycc_kernel.h", SRC / "polycc_scene_layout.h", SRC / "polycc_shield.h",
-           SRC / "polycc_controller.h"] + sorted(SHIMS.glob("*.h"))
+           SRC / "polycc_controller.h", SRC / "polycc_swarm.h"] + sorted(SHIMS.glob("*.h"))
 # The firmware's flags that matter for code generation and warnings (tools/kbuild/Makefile.kbuild:
 # -std=gnu11 -Wall -Wdouble-promotion, -Os -Werror in release, -fno-math-errno), the kernel's
 # -ffp-contract=off, plus -Wextra on the host.

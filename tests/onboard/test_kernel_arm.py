@@ -15,7 +15,7 @@ STRICT = ["-std=c99", "-Wall", "-Wextra", "-Wdouble-promotion", "-Wconversion", 
 
 @pytest.mark.parametrize("opt", ["-O0", "-O2", "-Os"])
 def test_kernel_compiles_warning_free_on_host(tmp_path, opt):
-    for src in ("polycc_kernel.c",):
+    for src in ("polycc_kernel.c", "polycc_swarm.c"):
         r = subprocess.run(["gcc", *STRICT, opt, "-c", str(SRC / src), "-o", str(tmp_path / "k.o")],
                            capture_output=True, text=True)
         assert r.returncode == 0, r.stderr

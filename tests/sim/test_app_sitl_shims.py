@@ -15,10 +15,11 @@ from polycc.onboard import app as onboard_app
 from polycc.onboard.app import STATUS_NAMES, app_rate_hz
 from polycc.sim.app_ffi import SRC, AppSim
 
-LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2)]
+LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2),
+            ("nNbr", 1)]
 # PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09
 PARAMS = [("enable", 0x08), ("goalX", 0x06), ("goalY", 0x06), ("goalZ", 0x06), ("vmax", 0x06), ("beta", 0x06),
-          ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09)]
+          ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09), ("swarmV", 0x06)]
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +52,7 @@ def test_log_and_param_tocs(fresh):
     assert [(e.name, e.type) for e in logs] == LOG_VARS
     pars = [e for e in fresh.param_toc() if e.group == "polycc"]
     assert [(e.name, e.type) for e in pars] == PARAMS
-    assert [e.size for e in pars] == [1, 4, 4, 4, 4, 4, 4, 4, 2]
+    assert [e.size for e in pars] == [1, 4, 4, 4, 4, 4, 4, 4, 2, 4]
     # The simulated estimate is in the log TOC like the firmware's core variables (LOG_CORE = 0x20).
     est = {e.name: e for e in fresh.log_toc() if e.group == "stateEstimate"}
     assert {"x", "y", "z"} <= set(est) and est["x"].type == 0x20 | 7
