@@ -80,6 +80,7 @@ class Trial:
     impact_speed_ms: float = 0.0  # fastest touchdown on the floor, m/s (0: none)
     waypoints: np.ndarray | None = None  # the plan flown (k, 3) m, waypoints[0] = start, or None
     reached: int = 0  # waypoints after the start the vehicle switched past or arrived at
+    extra: dict | None = None  # simulator-specific facts (the real-firmware SITL: RTF, connect, landing)
 
     @property
     def length_ratio(self) -> float:

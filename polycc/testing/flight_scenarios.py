@@ -3,18 +3,20 @@
 results can be compared (the differential test) and each can be checked against what a
 Crazyflie user expects (take off, hand over, land, lose the link, never drop the drone).
 
-A scenario is ``fn(uri, world, arena) -> dict``: ``world`` is the simulator's side door, with
-``cut_link(seconds)`` (drop the link both ways) and ``truth()`` -> (position m, velocity m/s,
-motors_on); ``arena`` has ``start`` (x, y on the floor below it) and ``goal`` (through a hoop).
-Every scenario starts on the floor with the motors off. Results are plain dicts: series of
-(time s, x, y, z, vz, motors_on, status) sampled every 20 ms, and scalar measurements.
+A scenario is ``fn(uri, world, arena) -> dict``: ``world`` is the simulator's side door
+(:mod:`polycc.testing.worlds`), with ``cut_link(seconds)`` (drop the link both ways), ``sample()`` ->
+(simulated time s, position m, velocity m/s, motors_on), and ``sleep``/``wait_until`` in simulated time;
+``arena`` has ``start`` (x, y on the floor below it) and ``goal`` (through a hoop). Every scenario starts
+on the floor with the motors off and waits in the simulator's time, so a real-firmware SITL that runs
+slower than real time flies the same scenario. Results are plain dicts: ``series`` of (simulated time s,
+x, y, z, vz, motors_on, status) sampled about every 20 ms, ``marks`` (simulated times of the scenario's
+steps: ``takeoff``, ``enable``, ``disable``, ``cut``, ...) and scalar measurements.
 """
 
 from __future__ import annotations
 
 import math
 import threading
-import time
 
 import numpy as np
 
@@ -24,20 +26,25 @@ TAKEOFF_S = 2.0
 
 
 class Recorder:
-    """Samples the simulator's true state and the app's status (from the cflib log) every 20 ms."""
+    """Samples the simulator's true state and the app's status (from the cflib log) about every 20 ms;
+    times are the simulator's, from the recorder's start."""
 
     def __init__(self, world, log: dict):
         self.world, self.log = world, log
         self.rows: list[tuple] = []
+        self.marks: dict[str, float] = {}
         self._stop = threading.Event()
-        self._t0 = time.monotonic()
+        self._t0 = world.time()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self):
         while not self._stop.wait(0.02):
-            p, v, on = self.world.truth()
+            try:
+                t, p, v, on = self.world.sample()
+            except Exception:  # the simulator is gone: the scenario reports it
+                return
             st = self.log.get("polycc.status", -1)
-            self.rows.append((time.monotonic() - self._t0, *map(float, p), float(v[2]), int(on), int(st)))
+            self.rows.append((t - self._t0, *map(float, p), float(v[2]), int(on), int(st)))
 
     def __enter__(self):
         self._thread.start()
@@ -48,7 +55,12 @@ class Recorder:
         self._thread.join(2.0)
 
     def now(self) -> float:
-        return time.monotonic() - self._t0
+        return self.world.time() - self._t0
+
+    def mark(self, name: str) -> float:
+        """Note the simulated time of a step (``marks`` in the result)."""
+        self.marks[name] = t = self.now()
+        return t
 
     def array(self) -> np.ndarray:
         return np.array(self.rows, float).reshape(-1, 7)
@@ -58,7 +70,7 @@ class Recorder:
         return a[a[:, 0] >= t]
 
 
-from polycc.ground.fly import close_without_stop  # noqa: E402
+from polycc.link.cflib_tools import close_without_stop  # noqa: E402
 
 
 def _connect(uri: str):
@@ -90,26 +102,19 @@ def _start_log(scf, log: dict):
 
 
 def _set(cf, name: str, value) -> None:
-    from polycc.ground.fly import set_param
+    from polycc.link.cflib_tools import set_param
 
     set_param(cf, name, value)
 
 
-def _wait(cond, timeout_s: float, step: float = 0.05) -> bool:
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(step)
-    return False
-
-
-def _takeoff(cf, world) -> bool:
+def _takeoff(cf, world, rec=None) -> bool:
     if cf.param.toc.get_element_by_complete_name("commander.enHighLevel") is not None:
         _set(cf, "commander.enHighLevel", 1)
     cf.commander.send_notify_setpoint_stop()  # a previous session's cflib close_link left CRTP priority
+    if rec is not None:
+        rec.mark("takeoff")
     cf.high_level_commander.takeoff(TAKEOFF_Z, TAKEOFF_S)
-    return _wait(lambda: abs(world.truth()[0][2] - TAKEOFF_Z) < 0.05, TAKEOFF_S + 6.0)
+    return world.wait_until(lambda: abs(world.truth()[0][2] - TAKEOFF_Z) < 0.05, TAKEOFF_S + 6.0)
 
 
 def _goal(cf, goal) -> None:
@@ -120,7 +125,8 @@ def _goal(cf, goal) -> None:
 def _land(cf, world, result: dict) -> None:
     z = world.truth()[0][2]
     cf.high_level_commander.land(0.0, max(2.0, z / 0.3))
-    result["landed"] = _wait(lambda: world.truth()[0][2] < 0.05 and not world.truth()[2], max(2.0, z / 0.3) + 8.0)
+    result["landed"] = world.wait_until(lambda: world.truth()[0][2] < 0.05 and not world.truth()[2],
+                                        max(2.0, z / 0.3) + 8.0)
 
 
 def _heartbeats(cf, stop: threading.Event):
@@ -145,21 +151,24 @@ def full_flight(uri, world, arena) -> dict:
         _start_log(scf, log)
         cf = scf.cf
         with Recorder(world, log) as rec:
-            out["took_off"] = _takeoff(cf, world)
+            out["took_off"] = _takeoff(cf, world, rec)
             _goal(cf, arena["goal"])
+            rec.mark("enable")
             _set(cf, "polycc.enable", 1)
-            out["arrived"] = _wait(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
-            t_dis = rec.now()
+            out["arrived"] = world.wait_until(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
+            t_dis = rec.mark("disable")
             z_dis = world.truth()[0][2]
             _set(cf, "polycc.enable", 0)
-            time.sleep(3.0)
+            world.sleep(3.0)
             hold = rec.since(t_dis)
             out["hold_dz_max"] = float(np.max(np.abs(hold[:, 3] - z_dis))) if len(hold) else math.inf
             out["status_after_disable"] = int(log.get("polycc.status", -1))
+            rec.mark("land")
             _land(cf, world, out)
-            time.sleep(1.0)
+            world.sleep(1.0)
             out["motors_on_end"] = bool(world.truth()[2])
         out["series"] = rec.array().tolist()
+        out["marks"] = rec.marks
     finally:
         close_without_stop(scf)
     return out
@@ -175,14 +184,16 @@ def enabled_on_floor(uri, world, arena) -> dict:
         cf = scf.cf
         with Recorder(world, log) as rec:
             _goal(cf, arena["goal"])
+            rec.mark("enable")
             _set(cf, "polycc.enable", 1)
-            time.sleep(3.0)
+            world.sleep(3.0)
             a = rec.array()
             out["motors_on_any"] = bool(a[:, 5].any()) if len(a) else True
             out["status"] = int(log.get("polycc.status", -1))
             out["z_max"] = float(a[:, 3].max()) if len(a) else math.inf
             _set(cf, "polycc.enable", 0)
         out["series"] = rec.array().tolist()
+        out["marks"] = rec.marks
     finally:
         close_without_stop(scf)
     return out
@@ -197,24 +208,27 @@ def disable_at_speed(uri, world, arena) -> dict:
         _start_log(scf, log)
         cf = scf.cf
         with Recorder(world, log) as rec:
-            out["took_off"] = _takeoff(cf, world)
+            out["took_off"] = _takeoff(cf, world, rec)
             _set(cf, "polycc.vmax", 0.5)
             _goal(cf, arena["goal"])
+            rec.mark("enable")
             _set(cf, "polycc.enable", 1)
-            out["reached_speed"] = _wait(lambda: np.linalg.norm(world.truth()[1]) > 0.45, 15.0, 0.01)
+            out["reached_speed"] = world.wait_until(lambda: np.linalg.norm(world.truth()[1]) > 0.45, 15.0)
             out["speed_at_disable"] = float(np.linalg.norm(world.truth()[1]))
             p0 = world.truth()[0].copy()
+            t0 = rec.mark("disable")
             _set(cf, "polycc.enable", 0)
-            t0 = rec.now()
-            time.sleep(3.0)
+            world.sleep(3.0)
             after = rec.since(t0)
             out["speed_end"] = float(np.linalg.norm(world.truth()[1]))
             out["travel_after_disable"] = float(np.max(np.linalg.norm(after[:, 1:4] - p0, axis=1))) if len(after) \
                 else math.inf
             out["z_min_after"] = float(after[:, 3].min()) if len(after) else -math.inf
             out["motors_on_end"] = bool(world.truth()[2])
+            rec.mark("land")
             _land(cf, world, out)
         out["series"] = rec.array().tolist()
+        out["marks"] = rec.marks
     finally:
         close_without_stop(scf)
     return out
@@ -230,24 +244,26 @@ def link_loss(uri, world, arena, cut_s: float = 5.0) -> dict:
         _start_log(scf, log)
         cf = scf.cf
         with Recorder(world, log) as rec:
-            out["took_off"] = _takeoff(cf, world)
+            out["took_off"] = _takeoff(cf, world, rec)
             _heartbeats(cf, stop)
             _goal(cf, arena["goal"])
+            rec.mark("enable")
             _set(cf, "polycc.enable", 1)
-            time.sleep(2.0)
+            world.sleep(2.0)
             out["status_before_cut"] = int(log.get("polycc.status", -1))
             out["z_at_cut"] = float(world.truth()[0][2])
+            t0 = rec.mark("cut")
             world.cut_link(cut_s)
-            t0 = rec.now()
-            time.sleep(cut_s + 0.5)
+            world.sleep(cut_s + 0.5)
             after = rec.since(t0)
             out["landed"] = bool(world.truth()[0][2] < 0.05)
             out["motors_on_end"] = bool(world.truth()[2])
             out["max_descent_speed"] = float(-after[:, 4].min()) if len(after) else math.inf
             stop.set()
-            time.sleep(1.5)  # link back: the status says what happened
+            world.sleep(1.5)  # link back: the status says what happened
             out["status_after"] = int(log.get("polycc.status", -1))
         out["series"] = rec.array().tolist()
+        out["marks"] = rec.marks
     finally:
         stop.set()
         close_without_stop(scf)
@@ -264,20 +280,25 @@ def unsupported_controller(uri, world, arena) -> dict:
         _start_log(scf, log)
         cf = scf.cf
         with Recorder(world, log) as rec:
-            out["took_off"] = _takeoff(cf, world)
+            out["took_off"] = _takeoff(cf, world, rec)
+            rec.mark("mellinger")
             _set(cf, "stabilizer.controller", 2)  # Mellinger
-            time.sleep(0.5)
+            world.sleep(0.5)
             p0 = world.truth()[0].copy()
             _goal(cf, arena["goal"])
+            rec.mark("enable")
             _set(cf, "polycc.enable", 1)
-            time.sleep(2.0)
+            world.sleep(2.0)
             out["status"] = int(log.get("polycc.status", -1))
             out["moved"] = float(np.linalg.norm(world.truth()[0] - p0))
             _set(cf, "polycc.enable", 0)
+            rec.mark("pid")
             _set(cf, "stabilizer.controller", 1)
-            time.sleep(0.5)
+            world.sleep(0.5)
+            rec.mark("land")
             _land(cf, world, out)
         out["series"] = rec.array().tolist()
+        out["marks"] = rec.marks
     finally:
         close_without_stop(scf)
     return out
@@ -294,26 +315,32 @@ def ground_setpoints_while_enabled(uri, world, arena) -> dict:
         _start_log(scf, log)
         cf = scf.cf
         with Recorder(world, log) as rec:
-            out["took_off"] = _takeoff(cf, world)
+            out["took_off"] = _takeoff(cf, world, rec)
             _goal(cf, arena["goal"])
+            rec.mark("enable")
             _set(cf, "polycc.enable", 1)
-            time.sleep(0.5)
+            world.sleep(0.5)
 
             def stream():
                 while not stop.wait(0.05):
                     cf.commander.send_velocity_world_setpoint(0.0, 0.0, -0.5, 0.0)  # straight down
             t = threading.Thread(target=stream, daemon=True)
+            rec.mark("stream")
             t.start()
-            out["arrived"] = _wait(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
+            out["arrived"] = world.wait_until(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
             stop.set()
             t.join(1.0)
             a = rec.array()
-            out["z_min_flight"] = float(a[a[:, 0] > 3.0, 3].min()) if len(a) else -math.inf
+            t_stream = rec.marks["stream"]
+            out["z_min_flight"] = float(a[a[:, 0] > t_stream, 3].min()) if len(a) else -math.inf
             cf.commander.send_notify_setpoint_stop()
+            rec.mark("disable")
             _set(cf, "polycc.enable", 0)
-            time.sleep(1.0)
+            world.sleep(1.0)
+            rec.mark("land")
             _land(cf, world, out)
         out["series"] = rec.array().tolist()
+        out["marks"] = rec.marks
     finally:
         stop.set()
         close_without_stop(scf)
@@ -328,8 +355,9 @@ def polycc_fly_from_floor(uri, world, arena) -> dict:
     out: dict = {"name": "polycc_fly_from_floor"}
     log: dict = {}
     with Recorder(world, log) as rec:
+        rec.mark("fly")
         fl = fly(uri, [arena["goal"]], ["polycc.psi"], timeout_s=60.0, arrive_tol=0.1, takeoff=TAKEOFF_Z, land=True)
-        time.sleep(1.0)
+        world.sleep(1.0)
     a = rec.array()
     out["outcome"] = fl.outcome
     out["events"] = fl.events
@@ -337,6 +365,7 @@ def polycc_fly_from_floor(uri, world, arena) -> dict:
     out["max_descent_speed"] = float(-a[:, 4].min()) if len(a) else math.inf
     out["motors_on_end"] = bool(world.truth()[2])
     out["series"] = a.tolist()
+    out["marks"] = rec.marks
     return out
 
 
