@@ -404,7 +404,7 @@ def main(argv=None) -> int:
     stack, chain = kernel_arm.worst_stack(test_dir)
     size = kernel_arm.size_of(test_dir / "polycc_kernel.o")
     result = {"mhz": MHZ, "params": params.__dict__, "rows": rows, "stack_bytes": stack, "stack_chain": chain,
-              "kernel_size": size, "elf": str(elf.relative_to(REPO)), "seconds": time.time() - t0}
+              "kernel_size": size, "elf": str(elf), "seconds": time.time() - t0}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1, default=float))
     print(table(result))

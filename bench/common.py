@@ -10,8 +10,7 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-# ../shared/scenes beside the checkout; POLYCC_SCENES overrides it (e.g. a git worktree elsewhere)
-SCENES = Path(os.environ.get("POLYCC_SCENES") or REPO.parent / "shared" / "scenes")
+SCENES = Path(os.environ.get("POLYCC_SHARED_SCENES", REPO.parent / "shared" / "scenes"))  # as polycc.testing.files
 RESULTS = REPO / "bench" / "results"
 CACHE = REPO / "build" / "bench-cache"
 

@@ -26,7 +26,9 @@ from polycc.occupancy.exact import voxelize
 from polycc.occupancy.floaters import floater_loss, floater_text, loss_record
 from polycc.occupancy.grid import OccupancyGrid
 from polycc.occupancy.triangles import merge_triangles
+from polycc.onboard.app import app_rate_hz
 from polycc.onboard.layout import stored_vertices
+from polycc.parallel import Runner, make_runner
 from polycc.report.plots import write_report
 from polycc.scene.load import Scene, load_scene
 from polycc.scene.settings import SceneSettings
@@ -50,6 +52,8 @@ class BuildOptions:
     boxes: bool = True
     merge_cost: str = DEFAULT_MERGE_COST
     mc_samples: int = 100_000
+    jobs: int | None = None  # local worker processes (None = every core); the result does not depend on it
+    dask: str | None = None  # "tcp://HOST:PORT" of a Dask scheduler or "local:N"; overrides jobs
 
     def budget(self) -> Budget:
         rate = cycle_model.cycle_budget(self.rate_hz, self.cpu_share) if self.rate_hz is not None else None
@@ -99,13 +103,14 @@ def check_size(scene: Scene, voxel: float, warn: Warn | None = None) -> None:
 
 
 def occupancy(scene: Scene, settings: SceneSettings, progress: Progress | None = None,
-              warn: Warn | None = None) -> OccupancyGrid:
-    """Exact V+ of the scene at ``settings.voxel``, with the floater filter's loss computed."""
+              warn: Warn | None = None, runner: Runner | None = None) -> OccupancyGrid:
+    """Exact V+ of the scene at ``settings.voxel``, with the floater filter's loss computed
+    (x slabs in parallel on ``runner``'s workers, the same result)."""
     check_size(scene, settings.voxel, warn)
     n = len(scene.ellipsoids)
     t = time.perf_counter()
     occ = voxelize(scene.ellipsoids, settings.voxel, settings.min_splats_per_voxel,
-                   progress=(lambda done: progress("voxelize", done, n)) if progress else None)
+                   progress=(lambda done: progress("voxelize", done, n)) if progress else None, runner=runner)
     if scene.triangles is not None and len(scene.triangles):
         nt = len(scene.triangles)
         occ = merge_triangles(occ, scene.triangles,
@@ -150,13 +155,18 @@ def build(scene_path: str | Path, out: str | Path, settings: SceneSettings | Non
     options = options or BuildOptions()
     budget = options.budget()
     out = Path(out)
-    scene = read(scene_path, settings, progress, warn)
-    occ = occupancy(scene, settings, progress, warn)
-    if progress:
-        progress("cover", 0, 1)
-    t = time.perf_counter()
-    family = build_cover(occ, b=options.neighborhood, cost=options.merge_cost, boxes=options.boxes)
-    t_cover = time.perf_counter() - t
+    with make_runner(options.jobs, options.dask) as runner:
+        scene = read(scene_path, settings, progress, warn)
+        occ = occupancy(scene, settings, progress, warn, runner)
+        t = time.perf_counter()
+        family = build_cover(occ, b=options.neighborhood, cost=options.merge_cost, boxes=options.boxes, runner=runner,
+                             progress=progress)
+        t_cover = time.perf_counter() - t
+        return _budget_and_write(scene_path, out, settings, options, budget, scene, occ, family, t_all, t_cover,
+                                 progress)
+
+
+def _budget_and_write(scene_path, out, settings, options, budget, scene, occ, family, t_all, t_cover, progress):
     out.mkdir(parents=True, exist_ok=True)
     family.meta.update({"scene_sha256": scene.sha256, "scene": str(scene_path),
                         "scene_settings": settings.as_record()})
@@ -192,7 +202,10 @@ def tradeoff_curve(cands: list[Candidate]) -> list[tuple[int, float, float]]:
 
 def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, options, budget) -> dict:
     rec = settings.as_record()
-    opts = {**{k: v for k, v in rec.items() if k != "world_matrix"}, **asdict(options)}
+    worst = int(np.ceil(us["worst_us"] * cycle_model.CPU_HZ / 1e6))
+    # where it ran (jobs, dask) does not change the result, so it is not recorded: same input, same bytes
+    opts = {**{k: v for k, v in rec.items() if k != "world_matrix"},
+            **{k: v for k, v in asdict(options).items() if k not in ("jobs", "dask")}}
     stats = {
         "splats_read": scene.stats.read, "splats_kept": scene.stats.kept, "scene_stats": scene.stats.as_dict(),
         "voxels": len(occ), "voxel_size_m": occ.voxel_size, "occupied_volume_m3": occ.volume(),
@@ -205,6 +218,7 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
         "max_halfplanes": min(best.caps.values()), "binding_budget": binding,
         "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
         "union_volume_m3": best.union_volume, "modelled_us": us,
+        "app_rate_hz": app_rate_hz(worst),  # the rate polycc_app.c runs this header at (None: refused)
         "floater_filter": occ.stats.get("floater_filter"),
         "dropped_isolated": [{"splats": g.count, "centroid_m": g.centroid.tolist(), "lo_m": g.lo.tolist(),
                               "hi_m": g.hi.tolist(), "distance_to_main_body_m": g.gap} for g in scene.dropped_groups],
@@ -216,7 +230,7 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
     return {
         "scene_settings": rec, "floater_line": floater_text(occ.stats) or "none (--min-splats-per-voxel 1)",
         "kappa": options.kappa, "budget_bytes": budget.flash_bytes, "max_planes": min(best.caps.values()),
-        "worst_cycles": int(np.ceil(us["worst_us"] * cycle_model.CPU_HZ / 1e6)),
+        "worst_cycles": worst,
         "typical_cycles": int(np.ceil(us["typical_us"] * cycle_model.CPU_HZ / 1e6)),
         "binding": binding,
         "conservativeness_text": f"{best.conservativeness:.4f} +- {best.conservativeness_ci:.4f} (95% CI)",

@@ -257,6 +257,9 @@ static void finishHandOver(void)
 /* Give the vehicle to the high-level commander, holding position: go_to the stopping point of
  * a POLYCC_APP_HANDOVER_ACC deceleration (no further than half the last clearance), then relax
  * the priority.  If the high-level commander refuses, the app keeps holding the position itself.
+ * If the planner is already running (each app setpoint stops it, so the ground sent a takeoff,
+ * go_to or land since the last one, e.g. a land right after enable = 0), its plan is kept: the
+ * app only relaxes the priority.
  * With the PID controller and a wound-up z integral, the app first holds the stopping point itself
  * (settling, status 13) until the integral has decayed, a high-level command arrives or
  * POLYCC_APP_SETTLE_MAX_MS passed (polycc_app.h). */
@@ -264,15 +267,16 @@ static void handOverHold(void)
 {
     float x[3], v[3], yaw = 0.0f, s, d, T;
     int i;
+    if (!crtpCommanderHighLevelIsStopped()) {
+        /* a high-level command from the ground started a trajectory since the last tick: it takes over */
+        trace.handovers += 1u;
+        settling = false;
+        commanderRelaxPriority();
+        engaged = false;
+        holding = false;
+        return;
+    }
     if (settling) {
-        if (!crtpCommanderHighLevelIsStopped()) {
-            /* a high-level command from the ground started a trajectory since the last tick: it takes over */
-            settling = false;
-            commanderRelaxPriority();
-            engaged = false;
-            holding = false;
-            return;
-        }
         if (controllerGetType() == ControllerTypePID && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI &&
             xTaskGetTickCount() - settleStart < M2T(POLYCC_APP_SETTLE_MAX_MS)) {
             holdPosition(0);

@@ -203,11 +203,15 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     order = packed.order if packed.order is not None else np.arange(packed.n_polys)
     stored = [h.astype(np.float64) for h in packed.polytopes()]
     boxes = []
+    box_cache = caches.setdefault("boxes", {})  # candidates share most stored polytopes
     for h, p in zip(stored, [polys[i] for i in order]):
-        v = polytope_vertices(h, p.vertices.mean(axis=0), MIN_GAMMA)
-        if v is None:  # cannot happen for a packed (bounded) polytope; be loud if it does
-            raise PolyccError(f"internal: stored polytope of node {p.node} is unbounded")
-        boxes.append((v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9))
+        key = (h.tobytes(), p.node)
+        if key not in box_cache:
+            v = polytope_vertices(h, p.vertices.mean(axis=0), MIN_GAMMA)
+            if v is None:  # cannot happen for a packed (bounded) polytope; be loud if it does
+                raise PolyccError(f"internal: stored polytope of node {p.node} is unbounded")
+            box_cache[key] = (v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9)
+        boxes.append(box_cache[key])
     if "occupied" not in caches:
         caches["occupied"] = in_voxels(family.grid_indices, family.origin, family.voxel_size)
     # V+ lies inside the union (certified), so Vol(union) = Vol(V+) + waste; the waste is

@@ -114,3 +114,17 @@ def add_point_option(parser, *names: str, **kw) -> None:
 
 def main_argv(argv: list[str] | None) -> list[str]:
     return join_negative_values(list(sys.argv[1:] if argv is None else argv))
+
+
+def add_parallel_options(parser) -> None:
+    """``--jobs N`` and ``--dask ADDRESS``: where the pipeline's tasks run (never what they give)."""
+    from polycc.parallel import available_cores
+
+    g = parser.add_argument_group("where it runs (the result is the same for any choice)")
+    g.add_argument("--jobs", type=number(int, 1, 4096, unit="processes"), default=None, metavar="N",
+                   help="local worker processes for occupancy slabs, cover tiles and budget candidates, 1..4096 "
+                        f"(default: every core this process may use, here {available_cores()})")
+    g.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run the same task graph on Dask distributed instead: tcp://HOST:PORT of a running "
+                        "scheduler (each worker needs this polycc installed), or local:N for a local cluster of N "
+                        "worker processes; needs pip install 'polycc[dask]' (default: not used)")

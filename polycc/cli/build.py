@@ -7,7 +7,7 @@ import argparse
 from polycc import pipeline
 from polycc.budget import cycle_model
 from polycc.budget.reduce import MIN_PLANES
-from polycc.cli.argtypes import number
+from polycc.cli.argtypes import add_parallel_options, number
 from polycc.cli.console import StageProgress, console, warn
 from polycc.cli.scene_args import add_scene_options, output_dir, print_summary, resolve_scene_settings
 from polycc.cover.build import COVER_COSTS, DEFAULT_MERGE_COST
@@ -63,6 +63,7 @@ def register(sub) -> None:
                    help=f"Monte Carlo samples per candidate for conservativeness, at least {MC_SAMPLES_MIN:,} "
                         "(default: %(default)s)")
     add_scene_options(p)
+    add_parallel_options(p)
     p.set_defaults(func=run)
 
 
@@ -97,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
         ("modelled on-board time @168 MHz", f"typical {us['typical_us']:.0f} us, worst {us['worst_us']:.0f} us"),
         ("CPU at 500 Hz (typical / worst)", f"{us['typical_us'] * 500 / 1e4:.0f}% / {us['worst_us'] * 500 / 1e4:.0f}%"
                                             + ("" if args.rate_hz else "  (bound it with --rate-hz)")),
+        ("on-board loop rate (polycc.rate)", _rate_text(r.manifest["stats"]["app_rate_hz"])),
+        ("cover tiles / where it ran", f"{family.meta['tiles']['tiles']:,} / {family.meta['tiles']['where']}"),
         ("time: occupancy / cover / budget",
          f"{r.timings_s['occupancy']:.1f} / {r.timings_s['cover']:.1f} / {r.timings_s['budget']:.1f} s"),
         ("outputs", f"{out}/polytopes.h, manifest.json, scene.bin, cover.npz, report.png"),
@@ -105,3 +108,15 @@ def run(args: argparse.Namespace) -> int:
     console.print(f"build: n = {best.n}, {best.n_planes} half-planes, {best.bytes} bytes -> {out / 'polytopes.h'} "
                   f"({r.timings_s['total']:.1f} s)")
     return 0
+
+
+def _rate_text(rate: int | None) -> str:
+    """The rate the app will run this header at (its default 500 Hz request), in words."""
+    from polycc.onboard.app import CPU_SHARE_PERCENT, DEFAULT_RATE_HZ, MIN_RATE_HZ
+
+    if rate is None:
+        return (f"none: the worst case does not fit {CPU_SHARE_PERCENT} % of a {1000 // MIN_RATE_HZ} ms period "
+                "(the app refuses it, status 12); rebuild with --rate-hz")
+    if rate < DEFAULT_RATE_HZ:
+        return f"{rate} Hz (lowered from {DEFAULT_RATE_HZ} Hz so the worst case fits {CPU_SHARE_PERCENT} % of a period)"
+    return f"{rate} Hz"

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.cli.argtypes import number
+from polycc.cli.argtypes import add_parallel_options, number
 from polycc.cli.console import console, progress_bar, summary_table
 from polycc.cli.scene_args import (
     add_scene_options,
@@ -17,12 +17,13 @@ from polycc.cli.scene_args import (
     output_dir,
     resolve_scene_settings,
 )
-from polycc.cover.build import COVER_COSTS, DEFAULT_MERGE_COST, build_cover, conservativeness
+from polycc.cover.build import COVER_COSTS, DEFAULT_MERGE_COST, build_cover, build_families, conservativeness
 from polycc.cover.family import CoverFamily
 from polycc.cover.merge import MERGE_COSTS
 from polycc.errors import PolyccError
 from polycc.geometry.union_volume import in_voxels
 from polycc.occupancy.floaters import floater_text
+from polycc.parallel import make_runner
 
 PAPER_LEVELS = (10, 30, 50, 100, 150)
 
@@ -65,6 +66,7 @@ def register(sub) -> None:
                    help="Monte Carlo samples per level for the conservativeness curve in tradeoff.png "
                         "(default: %(default)s)")
     c.add_argument("--seed", type=int, default=0, help="random seed for the Monte Carlo estimates (default: 0)")
+    add_parallel_options(p)
     p.set_defaults(func=run)
 
 
@@ -115,26 +117,28 @@ def run(args: argparse.Namespace) -> int:
     out = output_dir(args.output)
     plot_n = _parse_levels(args.plot_n)
     settings = resolve_scene_settings(args)
-    scene, grid = load_scene_and_occupancy(args.scene, args)
-    costs = [args.merge_cost]
-    if args.merge_cost != "best" and args.compare:
-        costs += [c for c in MERGE_COSTS if c != args.merge_cost]
-    stages: dict = {}
-    families = {}
-    console.print(f"covering {len(grid):,} voxels (merge cost: {args.merge_cost})")
-    for cost in costs:
+    with make_runner(args.jobs, args.dask) as runner:
+        scene, grid = load_scene_and_occupancy(args.scene, args, runner)
+        costs = [args.merge_cost]
+        if args.merge_cost != "best" and args.compare:
+            costs += [c for c in MERGE_COSTS if c != args.merge_cost]
+        console.print(f"covering {len(grid):,} voxels (merge cost: {args.merge_cost}; {runner.where})")
         t0 = time.perf_counter()
-        bar = _StageBar(f"cover ({cost} cost)")
+        bar = _StageBar("cover")
+        stages: dict = {}
         try:
-            fam = build_cover(grid, args.neighborhood, cost, stages=stages, refresh=args.refresh, progress=bar,
-                              boxes=args.boxes)
+            if args.merge_cost == "best":
+                fam = build_cover(grid, args.neighborhood, "best", stages=stages, refresh=args.refresh,
+                                  progress=bar, boxes=args.boxes, runner=runner)
+                families = dict(stages["families"])
+            else:
+                families = build_families(grid, args.neighborhood, tuple(costs), bar, args.refresh, args.boxes,
+                                          runner)
+                fam = families[args.merge_cost]
         finally:
             bar.close()
-        fam.meta["time_s"] = time.perf_counter() - t0
-        families[fam.meta["merge_cost"]] = fam
-    if "families" in stages:
-        families = dict(stages["families"])
-    fam = families[args.merge_cost] if args.merge_cost in families else build_pick(families)
+        for f in families.values():
+            f.meta["time_s"] = time.perf_counter() - t0
     fam.meta.update({
         "scene": str(scene.path), "scene_sha256": scene.sha256, "voxel_size": grid.voxel_size,
         "scene_settings": settings.as_record(), "floater_filter": grid.stats.get("floater_filter"),
@@ -177,8 +181,11 @@ def run(args: argparse.Namespace) -> int:
                                                               fam.meta["selection"]["mean_conservativeness"].items())
                                                   + ")" if "selection" in fam.meta else "")),
         ("pair evaluations", f"{fam.meta['pair_evaluations']:,}"),
-        ("time: clusters / set cover / merge / half-planes",
-         " / ".join(f"{t[k]:.2f}" for k in ("clusters", "set_cover", "merge", "halfplanes")) + " s"),
+        ("tiles / where it ran", f"{fam.meta['tiles']['tiles']:,} of <= {fam.meta['tiles']['tile_voxels']:,} voxels / "
+                                 f"{fam.meta['tiles']['where']}"),
+        ("task time: clusters / set cover / merge / half-planes",
+         " / ".join(f"{t[k]:.2f}" for k in ("clusters", "set_cover", "merge", "halfplanes")) + " s"
+         + f" (wall {t['wall']:.1f} s)"),
     ]
     for cost, pts in curves.items():
         d = {n: (v, e) for n, v, e in pts}

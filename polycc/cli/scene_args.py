@@ -149,16 +149,17 @@ def load_scene_from_args(scene_path: str, args: argparse.Namespace) -> Scene:
         return pipeline.read(scene_path, settings, progress, warn)
 
 
-def voxelize_scene(scene: Scene, args: argparse.Namespace) -> OccupancyGrid:
+def voxelize_scene(scene: Scene, args: argparse.Namespace, runner=None) -> OccupancyGrid:
     settings = getattr(args, "scene_settings", None) or resolve_scene_settings(args)
     with StageProgress() as progress:
-        return pipeline.occupancy(scene, settings, progress, warn)
+        return pipeline.occupancy(scene, settings, progress, warn, runner)
 
 
-def load_scene_and_occupancy(scene_path: str, args: argparse.Namespace) -> tuple[Scene, OccupancyGrid]:
-    """Read the scene with the shared options and voxelize it (progress shown)."""
+def load_scene_and_occupancy(scene_path: str, args: argparse.Namespace, runner=None) -> tuple[Scene, OccupancyGrid]:
+    """Read the scene with the shared options and voxelize it (progress shown; x slabs on
+    ``runner``'s workers when given)."""
     scene = load_scene_from_args(scene_path, args)
-    return scene, voxelize_scene(scene, args)
+    return scene, voxelize_scene(scene, args, runner)
 
 
 def scene_summary_rows(scene: Scene) -> list[tuple[str, str]]:

@@ -24,14 +24,13 @@ def register(subparsers) -> None:
             "runs it in real time on a simulated vehicle and serves it as a Crazyflie that Bitcraze's cflib "
             "connects to: param and log TOCs from the app's own PARAM_/LOG_ tables (plus stateEstimate.* and "
             "firmware.polyccVersion), params that write the app's variables, log blocks at the requested period, "
-            "and the standard groups cflib and cfclient use (kalman, stabilizer.controller, commander, supervisor, "
-            "pm, deck), params that write the app's variables, log blocks at the requested period, and a host "
+            "the standard groups cflib and cfclient use (kalman, stabilizer.controller, commander, supervisor, "
+            "pm, deck), and a host "
             "model of the firmware's flight control: the commander's priorities, the high-level commander "
             "(takeoff/go_to/land trajectories), the supervisor's watchdog and motors-off cases, as on a Crazyflie "
             "(a stop setpoint in the air drops it). The vehicle starts on the floor with the motors off below "
             "--start (or hovering there with --airborne). Prints the URI to use and runs until Ctrl-C. Drive it "
-            "with your own cflib script or `polycc fly --uri URI --takeoff 0.9 --goal X,Y,Z --land`. "
-            "`--firmware FWDIR` serves the real Crazyflie firmware (its SITL) instead."
+            "with your own cflib script or `polycc fly --uri URI --takeoff 0.9 --goal X,Y,Z --land`."
         ),
     )
     p.add_argument("out", metavar="OUT", help="build folder with polytopes.h (from `polycc build`)")

@@ -46,12 +46,13 @@ def neighbour_offsets(b: int) -> np.ndarray:
 class Clusters:
     """All clusters of one grid.
 
-    Rows 0..V-1 are the clusters C_v; rows V.. (if ``boxes``) are exact boxes: for a voxel
+    Rows 0..V-1 are the clusters C_v (or one row per requested centre); the rows after them (if
+    ``boxes``) are exact boxes: for a voxel
     whose C_v wastes volume, the largest all-occupied axis-aligned box of its window that holds
     it (W = 0; at worst the voxel itself).
 
     neighbours: (R, K) int32; row r lists its voxel ids (-1 = cell not in the set).
-    centre:     (R,) int64 voxel id at the centre of the row's window (r for r < V).
+    centre:     (R,) int64 voxel id at the centre of the row's window (r for r < V by default).
     pattern:    (R,) int32 index into ``weights`` / ``volumes``.
     weights:    (P,) float64 W per distinct pattern, in cells (multiply by g^3).
     volumes:    (P,) float64 hull volume per pattern, cells.
@@ -93,9 +94,16 @@ def _window_boxes(b: int) -> np.ndarray:
     return masks[np.argsort(-masks.sum(axis=1), kind="stable")]
 
 
-def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True) -> Clusters:
-    """Clusters C_v for every voxel of ``indices`` ((V, 3) int64, sorted unique), plus (if
-    ``boxes``) one exact box per voxel whose C_v has W > 0, so that the set cover can always
+def _hull(key: bytes, offs: np.ndarray, mask: np.ndarray, cache: dict):
+    if key not in cache:
+        cache[key] = lattice_hull(voxel_corner_points(offs[mask]))
+    return cache[key]
+
+
+def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True, centres: np.ndarray | None = None) -> Clusters:
+    """Clusters C_v for every voxel of ``indices`` ((V, 3) int64, sorted unique), or only for the
+    voxels ``centres`` (row ids; their members are still any voxels of ``indices``), plus (if
+    ``boxes``) one exact box per such voxel whose C_v has W > 0, so that the set cover can always
     cover a voxel without waste (the paper's sets are the C_v only)."""
     if b < 0:
         raise ValueError("neighbourhood b must be >= 0")
@@ -104,12 +112,13 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True) -> Clust
     order = np.argsort(keys, kind="stable")  # identity for an OccupancyGrid (sorted)
     skeys = keys[order]
     offs = neighbour_offsets(b)
-    nb = np.empty((len(idx), len(offs)), np.int32)
-    for k, o in enumerate(offs):  # K vectorised lookups, K = (2b+1)^3
-        pos = lookup(skeys, pack(idx + o))
-        nb[:, k] = np.where(pos >= 0, order[pos], -1)
     V = len(idx)
-    centre = np.arange(V, dtype=np.int64)
+    centre = np.arange(V, dtype=np.int64) if centres is None else np.asarray(centres, np.int64)
+    nb = np.empty((len(centre), len(offs)), np.int32)
+    for k, o in enumerate(offs):  # K vectorised lookups, K = (2b+1)^3
+        pos = lookup(skeys, pack(idx[centre] + o))
+        nb[:, k] = np.where(pos >= 0, order[pos], -1)
+    hulls: dict = {}  # pattern bits -> hull, shared by the two passes
     if boxes:
         present = nb >= 0
         masks = _window_boxes(b)
@@ -119,7 +128,7 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True) -> Clust
         w0 = np.empty(len(uniq0))
         for p, bits in enumerate(uniq0):
             m = np.unpackbits(bits)[: len(offs)].astype(bool)
-            w0[p] = lattice_hull(voxel_corner_points(offs[m])).volume - m.sum()
+            w0[p] = _hull(bits.tobytes(), offs, m, hulls).volume - m.sum()
         lossy = np.flatnonzero(w0[pat0.reshape(-1)] > 1e-9)
         if len(lossy):
             best = np.full(len(lossy), -1, np.int64)
@@ -128,7 +137,7 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True) -> Clust
                 best[full] = j
             rows = np.where(masks[best], nb[lossy], -1).astype(np.int32)
             nb = np.vstack([nb, rows])
-            centre = np.concatenate([centre, lossy])
+            centre = np.concatenate([centre, centre[lossy]])
     present = nb >= 0
     packed = np.packbits(present, axis=1)
     uniq, pattern = np.unique(packed, axis=0, return_inverse=True)
@@ -138,8 +147,50 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True) -> Clust
     verts = []
     for p, bits in enumerate(uniq):
         mask = np.unpackbits(bits)[: len(offs)].astype(bool)
-        h = lattice_hull(voxel_corner_points(offs[mask]))
+        h = _hull(bits.tobytes(), offs, mask, hulls)
         volumes[p] = h.volume
         weights[p] = max(h.volume - mask.sum(), 0.0)
         verts.append(h.vertices)
     return Clusters(b, nb, pattern, weights, volumes, present.sum(axis=1).astype(np.int32), verts, centre, V)
+
+
+SOLID_MIN_LEVEL = 3  # solid blocks are aligned cubes of at least 2^3 = 8 voxels per side
+
+
+def solid_blocks(indices: np.ndarray, min_level: int = SOLID_MIN_LEVEL) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The largest aligned cubes of ``2^L`` voxels per side (L >= ``min_level``, corners on multiples
+    of 2^L) whose every voxel is in ``indices`` ((V, 3) int64, sorted unique), none inside another.
+
+    Returns (lo (B, 3) int64 lowest voxel of each block, level (B,) int64, block (V,) int64: the
+    block each voxel lies in, -1 for none). A solid region then costs its surface in voxels: its
+    interior is a few blocks (each a zero-waste leaf of the cover), and only the shell within 2^L
+    voxels of the boundary goes through clusters and the set cover.
+    """
+    idx = np.asarray(indices, np.int64)
+    V = len(idx)
+    block = np.full(V, -1, np.int64)
+    los, levels = [], []
+    if V == 0:
+        return np.empty((0, 3), np.int64), np.empty(0, np.int64), block
+    top = int(np.floor(np.log2(max(1, int((idx.max(axis=0) - idx.min(axis=0) + 1).min())))))
+    free = np.arange(V)
+    for L in range(top, min_level - 1, -1):
+        if len(free) < 8**L:
+            continue
+        k = pack(idx[free] >> L)
+        uk, inv, cnt = np.unique(k, return_inverse=True, return_counts=True)
+        full = np.flatnonzero(cnt == 8**L)
+        if not len(full):
+            continue
+        ids = np.full(len(uk), -1, np.int64)
+        ids[full] = len(levels) + np.arange(len(full))
+        own = ids[inv.reshape(-1)]
+        inb = own >= 0
+        block[free[inb]] = own[inb]
+        first = np.unique(own[inb], return_index=True)[1]
+        los.append((idx[free[inb]][first] >> L) << L)
+        levels += [L] * len(full)
+        free = free[~inb]
+    if not levels:
+        return np.empty((0, 3), np.int64), np.empty(0, np.int64), block
+    return np.concatenate(los).astype(np.int64), np.asarray(levels, np.int64), block

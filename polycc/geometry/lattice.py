@@ -89,7 +89,9 @@ def lattice_hull(points: np.ndarray, options: bytes = b"Qt") -> LatticeHull:
         volume, simplices, equations = _qhull_raw(pts.astype(np.float64), options)
     except QhullError as exc:  # pragma: no cover - voxel corners are never flat
         raise ValueError(f"degenerate hull of {len(pts)} lattice points: {exc}") from None
-    return LatticeHull(volume, pts[np.unique(simplices)], equations, simplices, pts)
+    used = np.zeros(len(pts), bool)  # the hull's vertices, in input order (as np.unique of the simplices)
+    used[simplices.ravel()] = True
+    return LatticeHull(volume, pts[used], equations, simplices, pts)
 
 
 def integer_planes(h: LatticeHull) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +101,9 @@ def integer_planes(h: LatticeHull) -> tuple[np.ndarray, np.ndarray]:
     Coplanar qhull triangles collapse to one row.
     """
     P = h.points[h.simplices]  # (T, 3, 3) int64
-    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    u, v = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+    n = np.column_stack([u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1], u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2],
+                         u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]])  # the exact integer cross product
     keep = np.any(n != 0, axis=1)  # qhull's triangulation may add zero-area triangles
     n, P, eq = n[keep], P[keep], h.equations[keep]
     flip = np.einsum("ij,ij->i", n.astype(np.float64), eq[:, :3]) < 0
@@ -107,8 +111,18 @@ def integer_planes(h: LatticeHull) -> tuple[np.ndarray, np.ndarray]:
     gcd = np.gcd.reduce(np.abs(n), axis=1)
     n = n // gcd[:, None]
     e = np.einsum("ij,ij->i", n, P[:, 0])
-    key = np.unique(np.column_stack([n, e]), axis=0)
+    key = _unique_rows(np.column_stack([n, e]))
     return key[:, :3], key[:, 3]
+
+
+def _unique_rows(a: np.ndarray) -> np.ndarray:
+    """``np.unique(a, axis=0)`` for a 2-D integer array (the same sorted rows), several times faster."""
+    if len(a) < 2:
+        return a.copy()
+    s = a[np.lexsort(a.T[::-1])]
+    keep = np.ones(len(s), bool)
+    keep[1:] = np.any(s[1:] != s[:-1], axis=1)
+    return s[keep]
 
 
 def to_world(points_q: np.ndarray, g: float, origin: np.ndarray) -> np.ndarray:

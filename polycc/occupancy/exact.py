@@ -17,6 +17,7 @@ number of distinct occupied voxels, not by the scene size.
 
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
@@ -33,6 +34,11 @@ DIRECT_EXTENT = 4  # AABBs up to this many voxels per axis are enumerated voxel 
 SPLAT_CHUNK = 32_768
 ITEM_BATCH = 400_000
 MAX_VOXELS_PER_SPLAT = 1 << 27
+PARALLEL_MIN_SPLATS = 50_000  # below this, slabs cost more than they save
+# Splats at least this many voxels across on every axis have a solid interior; the scene is refused
+# when those interiors would fill more than MAX_SOLID_VOXELS voxels (their cover costs their volume).
+SOLID_MIN_DIAMETER = 8.0
+MAX_SOLID_VOXELS = 250_000
 
 
 def pack_keys(idx: np.ndarray) -> np.ndarray:
@@ -113,14 +119,18 @@ def _initial_blocks(imin: np.ndarray, imax: np.ndarray):
 _CHILD = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], np.int64)
 
 
-def _expand_blocks(block_lo: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """All voxel indices of the given blocks (each 2^L per side)."""
+def _expand_blocks(block_lo: np.ndarray, level: np.ndarray, top: np.ndarray | None = None) -> np.ndarray:
+    """All voxel indices of the given blocks (each 2^L per side), those above ``top`` (per block,
+    inclusive; the owner's clipped AABB range) left out."""
     out = []
     for L in np.unique(level):
         s = 1 << int(L)
         g = np.stack(np.meshgrid(np.arange(s), np.arange(s), np.arange(s), indexing="ij"), axis=-1).reshape(-1, 3)
-        sel = block_lo[level == L]
-        out.append((sel[:, None, :] + g[None, :, :]).reshape(-1, 3))
+        pick = level == L
+        v = block_lo[pick][:, None, :] + g[None, :, :]
+        if top is not None:
+            v = v[np.all(v <= top[pick][:, None, :], axis=2)]
+        out.append(v.reshape(-1, 3))
     return np.concatenate(out) if out else np.empty((0, 3), np.int64)
 
 
@@ -145,8 +155,8 @@ def _voxelize_chunk(c: np.ndarray, M: np.ndarray, imin: np.ndarray, imax: np.nda
             if not o.size:
                 continue
             inside = boxes_inside(c[o], M[o], lo, hi)
-            if inside.any():
-                acc.add(pack_keys(_expand_blocks(b[inside], L[inside])))
+            if inside.any():  # (a block may reach past a clipped range: cut it there)
+                acc.add(pack_keys(_expand_blocks(b[inside], L[inside], imax[o[inside]])))
             o, b, L = o[~inside], b[~inside], L[~inside] - 1
             # Split into 8 children, dropping children beyond the owner's AABB range.
             half = (np.int64(1) << L)[:, None, None]
@@ -163,6 +173,95 @@ def _voxelize_chunk(c: np.ndarray, M: np.ndarray, imin: np.ndarray, imax: np.nda
     return tests
 
 
+def solid_interior_voxels(ell: Ellipsoids, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """(per splat the voxels of g its solid interior fills, mask of the splats counted): the
+    ellipsoid's volume in voxels for the splats at least :data:`SOLID_MIN_DIAMETER` voxels across
+    on every axis (an upper bound of what overlapping ones fill together)."""
+    d = 2.0 * ell.k * ell.sigmas  # (N, 3) diameters along the principal axes, metres
+    big = np.all(d >= SOLID_MIN_DIAMETER * g, axis=1)
+    vol = np.where(big, np.pi / 6.0 * np.prod(d / g, axis=1), 0.0)
+    return vol, big
+
+
+def _refuse_solid(ell: Ellipsoids, g: float, limit: float | None) -> None:
+    """Splats much larger than a voxel cost their volume in voxels (every interior voxel is
+    covered); refuse within a second, with the reason and the fix, when that volume is large."""
+    if limit is None or len(ell) == 0:
+        return
+    vol, big = solid_interior_voxels(ell, g)
+    total = float(vol.sum())
+    if total <= limit:
+        return
+    i = int(np.argmax(vol))
+    d = 2.0 * ell.k * ell.sigmas[i]
+    g_ok = g * (total / limit) ** (1.0 / 3.0)
+    raise PolyccError(
+        f"{int(big.sum()):,} splats are much larger than a {g:g} m voxel (largest: splat {i} at "
+        f"{np.round(ell.centers[i], 2).tolist()}, {d.min():.2f} x {d.max():.2f} m at {ell.k:g} sigma); their solid "
+        f"interiors would fill about {total:,.0f} voxels (limit {limit:,.0f}), and every one of them must be covered. "
+        f"Drop or cut them (--min-opacity, --crop), lower --sigma, or use --voxel {math.ceil(g_ok * 1000) / 1000:g} "
+        "or larger")
+
+
+def _voxelize_range(ell: Ellipsoids, imin: np.ndarray, imax: np.ndarray, g: float, origin: np.ndarray, chunk: int,
+                    progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """(sorted keys, counts, exact tests) of the voxels in each ellipsoid's index range [imin, imax]."""
+    acc = _Accumulator()
+    tests = 0
+    n = len(ell)
+    for s in range(0, n, chunk):
+        sub = ell.subset(slice(s, s + chunk))
+        tests += _voxelize_chunk(sub.centers, sub.whitening(), imin[s : s + chunk], imax[s : s + chunk], g, origin, acc)
+        if progress:
+            progress(min(s + chunk, n))
+    keys, counts = acc.result()
+    return keys, counts, tests
+
+
+def slab_task(centers, rotations, sigmas, k, imin, imax, g, origin, chunk) -> tuple[tuple, None]:
+    """Occupancy of one slab (worker side): the ellipsoids' ranges are already clipped to it."""
+    ell = Ellipsoids(centers, rotations, sigmas, k)
+    return _voxelize_range(ell, imin, imax, g, origin, chunk), None
+
+
+def slab_bounds(ell: Ellipsoids, imin: np.ndarray, imax: np.ndarray, slabs: int) -> np.ndarray:
+    """(S + 1,) x voxel indices cutting the scene into slabs [b_k, b_k+1) of about equal work:
+    each splat weighs about the surface of its bounding box in voxels, at its centre."""
+    ext = (imax - imin + 1).astype(np.float64)
+    w = 8.0 + 2.0 * (ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 0] * ext[:, 2])
+    x = (imin[:, 0] + imax[:, 0]) // 2
+    order = np.argsort(x, kind="stable")
+    cw = np.cumsum(w[order])
+    cuts = np.searchsorted(cw, cw[-1] * np.arange(1, slabs) / slabs)
+    inner = np.unique(x[order][np.minimum(cuts, len(x) - 1)] + 1)
+    lo, hi = int(imin[:, 0].min()), int(imax[:, 0].max()) + 1
+    return np.unique(np.concatenate([[lo], inner[(inner > lo) & (inner < hi)], [hi]]))
+
+
+def _voxelize_slabs(ell, imin, imax, g, origin, runner, progress, chunk) -> tuple[np.ndarray, np.ndarray, int]:
+    """The occupancy as one task per x slab (each voxel belongs to one slab, and each
+    (ellipsoid, voxel) pair is tested in that slab only, so counts stay exact). Slab keys are
+    x-major, so their concatenation in slab order is sorted."""
+    from polycc.parallel import Task
+
+    cuts = slab_bounds(ell, imin, imax, max(2, 4 * runner.workers))
+    graph = {}
+    for s, (lo, hi) in enumerate(zip(cuts[:-1], cuts[1:])):
+        def args(lo=int(lo), hi=int(hi) - 1):
+            sel = np.flatnonzero((imin[:, 0] <= hi) & (imax[:, 0] >= lo))
+            a, b = imin[sel].copy(), imax[sel].copy()
+            a[:, 0] = np.maximum(a[:, 0], lo)
+            b[:, 0] = np.minimum(b[:, 0], hi)
+            return (ell.centers[sel], ell.rotations[sel], ell.sigmas[sel], ell.k, a, b, g, origin, chunk)
+        graph[("occupancy", s)] = Task(slab_task, args)
+    n = len(ell)
+    res = runner.run(graph, (lambda d, t: progress(int(n * d / t))) if progress else None)
+    parts = [res[k] for k in graph]
+    keys = np.concatenate([p[0] for p in parts])
+    counts = np.concatenate([p[1] for p in parts])
+    return keys, counts, int(sum(p[2] for p in parts))
+
+
 def voxelize(
     ell: Ellipsoids,
     voxel_size: float,
@@ -170,6 +269,8 @@ def voxelize(
     origin: np.ndarray | None = None,
     progress: Callable[[int], None] | None = None,
     chunk: int = SPLAT_CHUNK,
+    runner=None,
+    max_solid_voxels: float | None = MAX_SOLID_VOXELS,
 ) -> OccupancyGrid:
     """The exact occupancy V+ of the ellipsoids ``ell``: every voxel that meets one of them.
 
@@ -182,6 +283,11 @@ def voxelize(
         :mod:`polycc.occupancy.floaters` reports how much).
     origin : (3,) grid origin, metres (default 0).
     progress : ``progress(n)`` with the number of ellipsoids done, after each chunk.
+    runner : a :mod:`polycc.parallel` runner with more than one worker voxelizes x slabs in
+        parallel (same result).
+    max_solid_voxels : refuse at once (PolyccError naming the splats and the fix) a scene whose
+        splats much larger than a voxel would fill more than this many voxels with solid interior
+        (:func:`solid_interior_voxels`); None = no limit.
 
     Returns
     -------
@@ -209,14 +315,11 @@ def voxelize(
             f"(its {ell.k:g}-sigma extent is {2 * ell.aabb_halfwidth()[i].max():.3g} m); "
             "crop it away with --crop, drop it with --min-opacity, or use a larger --voxel"
         )
-    acc = _Accumulator()
-    tests = 0
-    for s in range(0, n, chunk):
-        sub = ell.subset(slice(s, s + chunk))
-        tests += _voxelize_chunk(sub.centers, sub.whitening(), imin[s : s + chunk], imax[s : s + chunk], g, origin, acc)
-        if progress:
-            progress(min(s + chunk, n))
-    keys, counts = acc.result()
+    _refuse_solid(ell, g, max_solid_voxels)
+    if runner is not None and runner.workers > 1 and n >= PARALLEL_MIN_SPLATS:
+        keys, counts, tests = _voxelize_slabs(ell, imin, imax, g, origin, runner, progress, chunk)
+    else:
+        keys, counts, tests = _voxelize_range(ell, imin, imax, g, origin, chunk, progress)
     n_all = int(keys.size)
     keep = counts >= min_splats_per_voxel
     removed = unpack_keys(keys[~keep])

@@ -10,6 +10,7 @@ STATUS_NAMES = {
     0: "disabled", 1: "ok", 2: "no estimate", 3: "bad estimate", 4: "stale estimate", 5: "inside",
     6: "kernel invalid", 7: "not flying", 8: "waiting for the high-level commander", 9: "controller is not PID",
     10: "link lost", 11: "supervisor locked or crashed", 12: "scene too slow",
+    13: "handing over",
 }
 # What each status means for the user, in words (`polycc fly` prints these).
 STATUS_TEXT = {
@@ -26,11 +27,34 @@ STATUS_TEXT = {
     10: "link lost: handed over to a high-level landing, enable cleared",
     11: "the supervisor has locked the vehicle or detected a crash/tumble: nothing is sent",
     12: "the scene's worst-case evaluation does not fit even 10 Hz: rebuild with --rate-hz",
+    13: "disabled in the air: holding the hand-over point until the z integral has decayed, then the high-level "
+        "commander holds",
 }
-FLYING = {1, 2, 3, 4, 5, 6}  # statuses in which the app streams setpoints (owns the vehicle)
+FLYING = {1, 2, 3, 4, 5, 6, 13}  # statuses in which the app streams setpoints (owns the vehicle)
 STOP_REASONS = {5, 6, 9, 10, 11, 12}  # statuses that end a `polycc fly` run with an error
 REPLY_FORMAT = "<BBffff"
 """App-channel reply head (POLYCC_APP_REPLY_BYTES): status, enable, psi (m), estimate x, y, z (m); then an
 echo of the first bytes of the request."""
 PARAM_GROUP = "polycc"
 LOG_GROUP = "polycc"
+
+# polycc_app.h: the app's rate choice (a test checks these against the header).
+DEFAULT_RATE_HZ = 500  # POLYCC_APP_DEFAULT_RATE_HZ
+MIN_RATE_HZ = 10  # POLYCC_APP_MIN_RATE_HZ
+CPU_HZ = 168_000_000  # POLYCC_APP_CPU_HZ
+CPU_SHARE_PERCENT = 50  # POLYCC_APP_CPU_SHARE_PERCENT: the worst case must fit this share of a period
+TICK_RATE_HZ = 1000  # FreeRTOS configTICK_RATE_HZ on the Crazyflie
+
+
+def app_rate_hz(worst_cycles: int, requested_hz: int = DEFAULT_RATE_HZ) -> int | None:
+    """The loop rate (Hz) the app runs a scene at: ``requested_hz`` rounded to whole 1 ms ticks and
+    lowered until ``worst_cycles`` (POLYCC_SCENE_WORST_CYCLES) fits CPU_SHARE_PERCENT of a period,
+    as ``periodTicks()`` in polycc_app.c does; None if it does not fit even MIN_RATE_HZ (status 12)."""
+    per_tick = CPU_HZ // TICK_RATE_HZ
+    avail = per_tick * CPU_SHARE_PERCENT
+    t_min = max(1, -(-int(worst_cycles) * 100 // avail))
+    if t_min > TICK_RATE_HZ // MIN_RATE_HZ:
+        return None
+    r = max(MIN_RATE_HZ, int(requested_hz))
+    t = max(1, (TICK_RATE_HZ + r // 2) // r, t_min)
+    return TICK_RATE_HZ // t

@@ -193,6 +193,8 @@ def test_build_reports_the_floater_filter(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "floater filter" in text and "NOT" in text
     man = json.loads((out / "manifest.json").read_text())
+    # The app's loop rate for this header (issue 14: `polycc build` prints it).
+    assert "on-board loop rate (polycc.rate)" in text and man["stats"]["app_rate_hz"] == 500
     f = man["stats"]["floater_filter"]
     assert f["voxels_removed"] > 0 and f["splats_not_fully_covered"] > 0 and f["max_depth_outside_m"] > 0
     header = (out / "polytopes.h").read_text()

@@ -11,7 +11,8 @@ import pytest
 
 from polycc.codegen.header import write_outputs
 from polycc.geometry.halfplanes import axis_box
-from polycc.onboard.app import STATUS_NAMES
+from polycc.onboard import app as onboard_app
+from polycc.onboard.app import STATUS_NAMES, app_rate_hz
 from polycc.sim.app_ffi import SRC, AppSim
 
 LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2)]
@@ -67,6 +68,8 @@ def test_defaults_and_status_codes_match_header(fresh):
     assert math.isclose(fresh.get_param("polycc", "vmax"), float(d["POLYCC_APP_DEFAULT_VMAX"].rstrip("f")))
     codes = {int(v.rstrip("u")): k for k, v in d.items() if k.startswith("POLYCC_STATUS_")}
     assert sorted(codes) == sorted(STATUS_NAMES)
+    for name in ("DEFAULT_RATE_HZ", "MIN_RATE_HZ", "CPU_HZ", "CPU_SHARE_PERCENT"):
+        assert int(d["POLYCC_APP_" + name].split()[0].rstrip("u")) == getattr(onboard_app, name), name
     assert fresh.kappa == 100.0 and fresh.n_polys == 2
 
 
@@ -120,6 +123,22 @@ def test_disable_hands_over_to_the_high_level_commander_once(fresh):
     assert fresh.get_log("polycc", "status") == 0
 
 
+def test_a_land_sent_right_after_disable_is_kept(fresh):
+    """Regression (README example): `enable = 0` then an HL land before the app's next tick; the
+    hand-over must not replace the user's landing with its hold go_to."""
+    _enable(fresh)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    fresh.tick(0)
+    fresh.set_param("polycc", "enable", 0)
+    assert fresh.lib.crtpCommanderHighLevelLand(0.0, 2.0) == 0
+    for k in range(1, 5):
+        fresh.tick(2 * k)
+    rec = fresh.commander()
+    assert rec.hl_gotos == 0 and rec.hl_lands == 1 and rec.hl_state == 2  # landing
+    assert rec.relax_count == 1 and rec.active_priority == 1
+    assert fresh.get_log("polycc", "status") == 0
+
+
 def test_enabled_on_the_ground_sends_nothing(fresh):
     _enable(fresh, airborne=None)
     fresh.set_estimate((-1.0, 0.5, 0.0))
@@ -145,6 +164,26 @@ def test_the_worst_case_lowers_the_rate(tmp_path):
     app.set_estimate((-1.0, 0.5, 0.5))
     period = app.tick(0)
     assert period == 5 and app.get_log("polycc", "rate") == 200  # 400k cycles = 2.4 ms <= half of 5 ms
+    assert app_rate_hz(400_000) == 200  # what `polycc build` prints
+    app.reset()
+
+
+@pytest.mark.parametrize("worst,requested", [(1_000, 500), (200_000, 500), (400_000, 1000), (1_000, 37),
+                                             (8_000_000, 500), (8_500_000, 500)])
+def test_the_printed_rate_is_the_apps(tmp_path, worst, requested):
+    """polycc.onboard.app.app_rate_hz (printed by `polycc build`) is the rate the app runs at."""
+    write_outputs(tmp_path, [axis_box([0, 0, 0], [1, 1, 1])], {"kappa": 100.0, "worst_cycles": worst})
+    app = AppSim(tmp_path / "polytopes.h")
+    app.reset()
+    app.set_param("polycc", "rateHz", requested)
+    _enable(app)
+    app.set_estimate((-1.0, 0.5, 0.5))
+    app.tick(0)
+    expect = app_rate_hz(worst, requested)
+    if expect is None:
+        assert app.get_log("polycc", "status") == 12
+    else:
+        assert app.get_log("polycc", "rate") == expect
     app.reset()
 
 

@@ -384,10 +384,13 @@ void shim_commander_get(shim_commander_record_t *out)
 }
 
 /* ---------------------------------------------------------------- stabilizer step */
+/* Motors off: the PID controller passes setpoint.thrust through when z is not controlled, and zero
+ * thrust turns the motors off (controller_pid.c; power distribution, idleThrust 0). That covers
+ * the null setpoint and a manual (rpyt) setpoint with thrust 0, e.g. the one cflib's close_link()
+ * sends. */
 static int isNull(const setpoint_t *sp)
 {
-    return sp->mode.x == modeDisable && sp->mode.y == modeDisable && sp->mode.z == modeDisable &&
-           sp->mode.roll == modeDisable && sp->mode.pitch == modeDisable && !(sp->thrust > 0.0f);
+    return sp->mode.z == modeDisable && !(sp->thrust > 0.0f);
 }
 
 void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg, shim_setpoint_t *out)

@@ -1,0 +1,54 @@
+"""The README's own cflib script, run as written (only the URI changed) against the simulated
+Crazyflie: it takes off, flies to the goal through the app, hands over, lands, and the motors stop,
+with no descent faster than 1 m/s (issue 14: the README example must not drop the drone)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from polycc.testing.files import CHECKOUT
+from polycc.testing.flight_scenarios import Recorder
+from polycc.testing.worlds import FastWorld
+
+pytest.importorskip("cflib")
+
+
+def readme_example() -> str:
+    text = (CHECKOUT / "README.md").read_text()
+    m = re.search(r"<!-- readme-cflib-example -->\n```python\n(.*?)```", text, re.S)
+    assert m, "README.md lost its cflib example (marked <!-- readme-cflib-example -->)"
+    return m.group(1)
+
+
+def test_the_example_is_plain_cflib():
+    code = readme_example()
+    assert "import polycc" not in code and "from polycc" not in code  # a user's script: cflib only
+    assert "udp://127.0.0.1:19850" in code and "hl.land" in code
+
+
+@pytest.mark.slow
+def test_readme_cflib_example_flies_and_lands(tmp_path):
+    from polycc.cli import main
+
+    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
+    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000",
+                 "-o", str(tmp_path / "b")]) == 0
+    side = json.loads((tmp_path / "arena.json").read_text())
+    start = [side["start"][0], side["start"][1], 0.0]
+    code = readme_example()
+    goal = np.array([float(v) for v in re.search(r'\("goalX", ([-\d.]+)\), \("goalY", ([-\d.]+)\), '
+                                                 r'\("goalZ", ([-\d.]+)\)', code).groups()])
+    with FastWorld(tmp_path / "b" / "polytopes.h", start) as world:
+        with Recorder(world, {}) as rec:
+            exec(compile(code.replace("udp://127.0.0.1:19850", world.uri), "README.md", "exec"), {})
+        a = rec.array()
+        p, v, on = world.truth()
+    xyz = a[:, 1:4]
+    assert xyz[:, 2].max() > 0.8  # it took off
+    assert np.linalg.norm(xyz - goal, axis=1).min() < 0.15  # it reached the goal
+    assert p[2] < 0.03 and not on  # on the floor, motors off
+    assert a[:, 4].min() > -1.0  # never a descent faster than 1 m/s
