@@ -73,18 +73,12 @@ class Recorder:
 from polycc.link.cflib_tools import close_without_stop  # noqa: E402
 
 
-def _connect(uri: str):
-    import cflib.crtp
-    from cflib.crazyflie import Crazyflie
-    from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
-    from cflib.crtp.serialdriver import SerialDriver
+def _connect(uri: str, world=None):
+    """cflib connected, TOCs and param values read (one-line error after 90 s wall, never a hang); the
+    world's ``toc_cache`` (if any) is cflib's TOC cache, so a repeat connect to the same firmware skips the TOC."""
+    from polycc.link.cflib_tools import connect
 
-    if SerialDriver not in cflib.crtp.CLASSES:
-        cflib.crtp.init_drivers(enable_serial_driver=True)
-    scf = SyncCrazyflie(uri, cf=Crazyflie(rw_cache=None))
-    scf.open_link()
-    scf.wait_for_params()
-    return scf
+    return connect(uri, 90.0, getattr(world, "toc_cache", None))
 
 
 def _start_log(scf, log: dict):
@@ -146,7 +140,7 @@ def full_flight(uri, world, arena) -> dict:
     HL land: on the floor, motors off."""
     out: dict = {"name": "full_flight"}
     log: dict = {}
-    scf = _connect(uri)
+    scf = _connect(uri, world)
     try:
         _start_log(scf, log)
         cf = scf.cf
@@ -178,7 +172,7 @@ def enabled_on_floor(uri, world, arena) -> dict:
     """(c) Enable on the floor: the motors stay off, the status says to take off first."""
     out: dict = {"name": "enabled_on_floor"}
     log: dict = {}
-    scf = _connect(uri)
+    scf = _connect(uri, world)
     try:
         _start_log(scf, log)
         cf = scf.cf
@@ -203,7 +197,7 @@ def disable_at_speed(uri, world, arena) -> dict:
     """(d) Disable while flying at ~0.5 m/s: the vehicle stops and holds (no drop)."""
     out: dict = {"name": "disable_at_speed"}
     log: dict = {}
-    scf = _connect(uri)
+    scf = _connect(uri, world)
     try:
         _start_log(scf, log)
         cf = scf.cf
@@ -238,7 +232,7 @@ def link_loss(uri, world, arena, cut_s: float = 5.0) -> dict:
     """(e) The link is cut for ``cut_s`` mid-flight: the app lands the vehicle and the motors stop."""
     out: dict = {"name": "link_loss"}
     log: dict = {}
-    scf = _connect(uri)
+    scf = _connect(uri, world)
     stop = threading.Event()
     try:
         _start_log(scf, log)
@@ -275,7 +269,7 @@ def unsupported_controller(uri, world, arena) -> dict:
     the high-level commander."""
     out: dict = {"name": "unsupported_controller"}
     log: dict = {}
-    scf = _connect(uri)
+    scf = _connect(uri, world)
     try:
         _start_log(scf, log)
         cf = scf.cf
@@ -309,7 +303,7 @@ def ground_setpoints_while_enabled(uri, world, arena) -> dict:
     owns the vehicle until disable) and the flight goes on to the goal."""
     out: dict = {"name": "ground_setpoints_while_enabled"}
     log: dict = {}
-    scf = _connect(uri)
+    scf = _connect(uri, world)
     stop = threading.Event()
     try:
         _start_log(scf, log)
