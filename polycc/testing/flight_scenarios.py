@@ -363,5 +363,24 @@ def polycc_fly_from_floor(uri, world, arena) -> dict:
     return out
 
 
+def _app_segment(r: dict, seconds: float):
+    a = np.array(r["series"], float)
+    t0 = r["marks"]["enable"]
+    t1 = min(r["marks"].get("disable", math.inf), t0 + seconds)
+    a = a[(a[:, 0] >= t0) & (a[:, 0] <= t1)]
+    return a[:, 0] - t0, a[:, 1:4]
+
+
+def diff_rms(fast: dict, real: dict, seconds: float = 12.0) -> float:
+    """RMS 3-D position difference, m, of two runs of a scenario while the app flies: from each run's
+    ``enable`` mark to its ``disable`` (at most ``seconds``), time-aligned at the enable, 50 Hz."""
+    tf, pf = _app_segment(fast, seconds)
+    tr, pr = _app_segment(real, seconds)
+    t = np.arange(0.0, min(tf[-1], tr[-1]), 0.02)
+    a = np.stack([np.interp(t, tf, pf[:, i]) for i in range(3)], 1)
+    b = np.stack([np.interp(t, tr, pr[:, i]) for i in range(3)], 1)
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+
+
 SCENARIOS = {f.__name__: f for f in (full_flight, polycc_fly_from_floor, enabled_on_floor, disable_at_speed,
                                      link_loss, unsupported_controller, ground_setpoints_while_enabled)}

@@ -246,23 +246,6 @@ def test_polycc_sim_firmware_trials(arena, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- fast vs real
-def _after_enable(r, seconds=12.0):
-    a = np.array(r["series"], float)
-    t0 = r["marks"]["enable"]
-    a = a[(a[:, 0] >= t0) & (a[:, 0] <= t0 + seconds)]
-    return a[:, 0] - t0, a[:, 1:4]
-
-
-def diff_rms(fast: dict, real: dict, seconds: float = 12.0) -> float:
-    """RMS 3-D position difference, m, of two runs of a scenario, time-aligned at their enable."""
-    tf, pf = _after_enable(fast, seconds)
-    tr, pr = _after_enable(real, seconds)
-    t = np.arange(0.0, min(tf[-1], tr[-1]), 0.02)
-    a = np.stack([np.interp(t, tf, pf[:, i]) for i in range(3)], 1)
-    b = np.stack([np.interp(t, tr, pr[:, i]) for i in range(3)], 1)
-    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
-
-
 @pytest.mark.slow
 def test_fast_shims_agree_with_the_real_firmware(arena):
     from polycc.testing.worlds import FastWorld
@@ -270,6 +253,6 @@ def test_fast_shims_agree_with_the_real_firmware(arena):
     real = run(arena, "full_flight")
     with FastWorld(arena["dir"] / "polytopes.h", arena["start"]) as w:
         fast = fs.SCENARIOS["full_flight"](w.uri, w, arena)
-    rms = diff_rms(fast, real)
+    rms = fs.diff_rms(fast, real)
     print(f"full_flight: fast vs real firmware RMS {rms * 100:.1f} cm over 12 s after enable")
     assert rms <= DIFF_RMS_M
