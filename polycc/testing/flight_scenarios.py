@@ -76,9 +76,20 @@ from polycc.link.cflib_tools import close_without_stop  # noqa: E402
 def _connect(uri: str, world=None):
     """cflib connected, TOCs and param values read (one-line error after 90 s wall, never a hang); the
     world's ``toc_cache`` (if any) is cflib's TOC cache, so a repeat connect to the same firmware skips the TOC."""
+    import sys
+
+    from polycc.errors import PolyccError
     from polycc.link.cflib_tools import connect
 
-    return connect(uri, 90.0, getattr(world, "toc_cache", None))
+    try:
+        return connect(uri, 90.0, getattr(world, "toc_cache", None))
+    except PolyccError as exc:
+        if not getattr(world, "connect_retry", False):
+            raise
+        # seen once in ~30 real-firmware connects on a heavily loaded host (a TOC/param exchange that
+        # stalled with no lost packet the ARQ saw); a fresh cflib session connected. Reported, not hidden.
+        print(f"flight_scenarios: {exc}; retrying once with a fresh cflib session", file=sys.stderr)
+        return connect(uri, 90.0, None)
 
 
 def _start_log(scf, log: dict):
@@ -365,7 +376,8 @@ def polycc_fly_from_floor(uri, world, arena) -> dict:
 
 def _app_segment(r: dict, seconds: float):
     a = np.array(r["series"], float)
-    t0 = r["marks"]["enable"]
+    flying = a[(a[:, 0] >= r["marks"]["enable"]) & (a[:, 6] == 1)]
+    t0 = flying[0, 0] if len(flying) else r["marks"]["enable"]
     t1 = min(r["marks"].get("disable", math.inf), t0 + seconds)
     a = a[(a[:, 0] >= t0) & (a[:, 0] <= t1)]
     return a[:, 0] - t0, a[:, 1:4]
@@ -373,7 +385,9 @@ def _app_segment(r: dict, seconds: float):
 
 def diff_rms(fast: dict, real: dict, seconds: float = 12.0) -> float:
     """RMS 3-D position difference, m, of two runs of a scenario while the app flies: from each run's
-    ``enable`` mark to its ``disable`` (at most ``seconds``), time-aligned at the enable, 50 Hz."""
+    first status-1 sample after its ``enable`` mark (the app has taken over: a fast vehicle that reached
+    the takeoff height early waits there for the high-level commander, status 8) to its ``disable`` (at
+    most ``seconds``), time-aligned at that first sample, 50 Hz."""
     tf, pf = _app_segment(fast, seconds)
     tr, pr = _app_segment(real, seconds)
     t = np.arange(0.0, min(tf[-1], tr[-1]), 0.02)

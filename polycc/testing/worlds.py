@@ -94,6 +94,7 @@ class FirmwareWorld(_World):
 
     name = "firmware"
     poll_s = 0.02
+    connect_retry = True  # flight_scenarios._connect: one fresh cflib session after a stalled connect
 
     def __init__(self, header, start, tree=None, run_dir=None, rtf_max: float = 1.0, cf2=None):
         from polycc.sim.firmware.build import build_cf2
