@@ -164,9 +164,7 @@ def test_readme_cflib_example_on_the_real_firmware(arena):
 
 
 def _connect(w):
-    from polycc.link.cflib_tools import connect
-
-    return connect(w.uri, 90.0, w.toc_cache)
+    return fs._connect(w.uri, w)
 
 
 @pytest.mark.slow
