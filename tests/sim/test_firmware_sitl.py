@@ -132,11 +132,17 @@ def test_polycc_fly_from_the_floor(arena):
 
 
 # --------------------------------------------------------------------------- unmodified cflib scripts
+def _sim_time(w):
+    """A ``time`` module whose clock is the SITL's simulated time (it may run slower than real time on a
+    loaded host; on a real Crazyflie the two are the same): for scripts and cflib helpers that time
+    their steps with ``time.sleep`` (MotionCommander's moves and land, PositionHlCommander's waits)."""
+    return types.SimpleNamespace(sleep=w.sleep, time=w.time, monotonic=w.time, perf_counter=w.time)
+
+
 def _sim_time_import(w):
-    """``__import__`` for an exec'd user script whose ``time.sleep`` sleeps simulated seconds (the SITL
-    may run slower than real time on a loaded host; on a real Crazyflie the two are the same)."""
+    """``__import__`` for an exec'd user script whose ``import time`` gets :func:`_sim_time`."""
     real = builtins.__import__
-    fake = types.SimpleNamespace(sleep=w.sleep, time=w.time, monotonic=w.time)
+    fake = _sim_time(w)
 
     def imp(name, *a, **k):
         return fake if name == "time" else real(name, *a, **k)
@@ -170,14 +176,16 @@ def _connect(w):
 
 
 @pytest.mark.slow
-def test_motion_commander_and_sync_logger(arena):
+def test_motion_commander_and_sync_logger(arena, monkeypatch):
     from cflib.crazyflie.log import LogConfig
     from cflib.crazyflie.syncLogger import SyncLogger
+    from cflib.positioning import motion_commander
     from cflib.positioning.motion_commander import MotionCommander
 
     from polycc.link.cflib_tools import close_without_stop
 
     with world(arena) as w:
+        monkeypatch.setattr(motion_commander, "time", _sim_time(w))
         scf = _connect(w)
         try:
             lc = LogConfig(name="pos", period_in_ms=50)
@@ -192,8 +200,6 @@ def test_motion_commander_and_sync_logger(arena):
             assert len(rows) == 10 and all(abs(r["stateEstimate.z"]) < 0.05 for r in rows)
             p0 = w.truth()[0].copy()
             scf.cf.commander.send_notify_setpoint_stop()
-            # MotionCommander's own time.sleep calls are wall time: velocity setpoints keep the
-            # vehicle where it is between them; the distances are what it measures itself
             mc = MotionCommander(scf, default_height=0.6)
             mc.take_off(0.6, 0.3)
             z_up = w.truth()[0][2]
@@ -202,20 +208,24 @@ def test_motion_commander_and_sync_logger(arena):
             mc.land(0.3)
             p_end, _, on = w.truth()
             assert w.wait_until(lambda: not w.truth()[2], 5.0)  # motors stop on the floor (MC sends stop)
+            touchdown = max((float(i["speed"]) for i in w.sitl.impacts()), default=0.0)
         finally:
             close_without_stop(scf)
     assert z_up > 0.4
+    assert touchdown < 1.0  # landed, not dropped
     assert p1[0] - p0[0] > 0.2  # forward = +x in the world frame (yaw 0)
-    assert p_end[2] < 0.1
+    assert p_end[2] < 0.1 and touchdown < 1.0
 
 
 @pytest.mark.slow
-def test_position_hl_commander(arena):
+def test_position_hl_commander(arena, monkeypatch):
+    from cflib.positioning import position_hl_commander
     from cflib.positioning.position_hl_commander import PositionHlCommander
 
     from polycc.link.cflib_tools import close_without_stop
 
     with world(arena) as w:
+        monkeypatch.setattr(position_hl_commander, "time", _sim_time(w))
         scf = _connect(w)
         x0, y0 = arena["start"][0], arena["start"][1]
         try:
@@ -225,11 +235,12 @@ def test_position_hl_commander(arena):
                 pc.go_to(x0 + 0.4, y0, 0.7)
                 w.sleep(1.0)
                 p_goto = w.truth()[0].copy()
-            # leaving the with lands (its own time.sleep: the landing may still be running)
-            assert w.wait_until(lambda: w.truth()[0][2] < 0.05, 10.0)
+            p_end = w.truth()[0].copy()  # leaving the with landed (its land waits the landing's duration)
+            touchdown = max((float(i["speed"]) for i in w.sitl.impacts()), default=0.0)
         finally:
             close_without_stop(scf)
     assert math.dist(p_goto, (x0 + 0.4, y0, 0.7)) < 0.1
+    assert p_end[2] < 0.1 and touchdown < 1.0
 
 
 # --------------------------------------------------------------------------- polycc sim --firmware
@@ -256,3 +267,44 @@ def test_fast_shims_agree_with_the_real_firmware(arena):
     rms = fs.diff_rms(fast, real)
     print(f"full_flight: fast vs real firmware RMS {rms * 100:.1f} cm over 12 s after enable")
     assert rms <= DIFF_RMS_M
+
+
+# --------------------------------------------------------------------------- polycc sim-device --firmware
+@pytest.mark.slow
+def test_sim_device_firmware_serves_cflib_and_stops_on_ctrl_c(arena):
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from polycc.link.cflib_tools import close_without_stop, connect
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cmd = [sys.executable, "-m", "polycc", "sim-device", str(arena["dir"]), "--firmware", str(arena["tree"]),
+           "--udp", f"127.0.0.1:{port}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("URI: "):
+                break
+        uri = lines[-1].split()[1]
+        assert uri == f"udp://127.0.0.1:{port}", "".join(lines)
+        scf = connect(uri, 90.0)
+        try:
+            toc = scf.cf.param.toc
+            assert toc.get_element_by_complete_name("polycc.enable") is not None
+            assert toc.get_element_by_complete_name("kalman.resetEstimation") is not None  # the real firmware's TOC
+            assert int(scf.cf.param.get_value("polycc.enable")) == 0
+        finally:
+            close_without_stop(scf)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, "".join(lines) + rest
+    assert "ports freed" in rest
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", port))  # freed
