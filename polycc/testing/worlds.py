@@ -104,9 +104,7 @@ class FirmwareWorld(_World):
         self.build = cf2 if cf2 is not None else build_cf2(tree if tree is not None else sitl_tarball(), header)
         self.sitl = FirmwareSitl(self.build, start=(float(start[0]), float(start[1]), 0.0), run_dir=run_dir,
                                  rtf_max=rtf_max)
-        from polycc import resources
-
-        self.toc_cache = str(resources.cache_dir("firmware", "toc"))  # cflib's TOC cache (keyed by TOC CRC)
+        self.toc_cache = None  # cflib's TOC cache off: the stalled connects seen had it on (sim.firmware.flights)
 
     @property
     def uri(self) -> str:

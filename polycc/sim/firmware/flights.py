@@ -62,9 +62,8 @@ class FirmwareSimulator:
         self.rtf_max = rtf_max
         self.connect_timeout_s = connect_timeout_s
         self.n = 0
-        from polycc import resources
-
-        self.toc_cache = str(resources.cache_dir("firmware", "toc"))
+        # cflib's TOC cache is left off: both stalled connects seen had it on (not root-caused); ~1 s per connect
+        self.toc_cache = None
 
     def fly(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
         cfg = cfg or FlightConfig()
@@ -81,7 +80,13 @@ class FirmwareSimulator:
         with sitl:
             self.say(f"firmware booted in {sitl.t_ready:.1f} s ({sitl.uri})")
             t_c = time.monotonic()
-            scf = connect(sitl.uri, self.connect_timeout_s, self.toc_cache)
+            try:
+                scf = connect(sitl.uri, self.connect_timeout_s, self.toc_cache)
+            except PolyccError as exc:
+                # a connect that stalls with no packet loss the ARQ saw was seen twice in ~40 connects on a
+                # heavily loaded host; a fresh cflib session connected each time (reported, not hidden)
+                self.say(f"{exc}; retrying once with a fresh cflib session")
+                scf = connect(sitl.uri, self.connect_timeout_s, None)
             try:
                 self.say(f"cflib connected in {time.monotonic() - t_c:.1f} s")
                 trial, extra = self._flight(sitl, scf.cf, start, goal, targets, cfg)
