@@ -131,15 +131,27 @@ def plan(out: Path, base: Path, build: Path, uri: str, jobs: int, flash: bool) -
     return steps
 
 
+def sync_file(src: Path, dst: Path) -> bool:
+    """Copy ``src`` to ``dst`` unless ``dst`` already has the same bytes; a copied file gets the current
+    mtime (not the source's, as copy2 would keep), so make rebuilds what depends on it even when the new
+    file is older than the objects of a reused build folder. True if it copied."""
+    if dst.is_file() and dst.read_bytes() == src.read_bytes():
+        return False
+    shutil.copyfile(src, dst)
+    shutil.copymode(src, dst)
+    return True
+
+
 def copy_app(out: Path, app: Path, base: Path) -> None:
+    """The app and ``out/polytopes.h`` into ``app`` (a reused build folder recompiles exactly what changed)."""
     app.mkdir(parents=True, exist_ok=True)
     for f in APP_FILES:
-        shutil.copy2(resources.firmware_app() / f, app / f)
+        sync_file(resources.firmware_app() / f, app / f)
     (app / "src").mkdir(exist_ok=True)
     for f in (resources.firmware_app() / "src").iterdir():
         if f.suffix in (".c", ".h") or f.name == "Kbuild":
-            shutil.copy2(f, app / "src" / f.name)
-    shutil.copy2(out / "polytopes.h", app / "polytopes.h")
+            sync_file(f, app / "src" / f.name)
+    sync_file(out / "polytopes.h", app / "polytopes.h")
     if not (base / ".git").exists():
         (app / "build").mkdir(exist_ok=True)
         (app / "build" / "build_info.json").write_text(json.dumps({"tag": f"polycc-{__version__}"}) + "\n")
