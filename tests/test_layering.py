@@ -17,6 +17,7 @@ PKG = ROOT / "polycc"
 RANK = {
     "errors": 0, "version": 0,
     "geometry": 1, "link": 1, "report": 1, "verify": 1, "resources": 1, "parallel": 1,
+    "firmware_trees": 2,  # firmware tarball/tree extraction and validation, shared by sim.firmware and ground.flash
     "scene": 2, "cbuild": 2,
     "occupancy": 3, "demo": 3,
     "cover": 4, "onboard": 4,

@@ -99,6 +99,11 @@ static bool linkLostLatched; /* the last engagement ended in a link-loss landing
 static logVarId_t idThrust;
 static bool haveThrust;
 static polycc_app_trace_t trace;
+static logVarId_t idZi;       /* posCtl.Zi: the PID position controller's z integral output, m/s */
+static paramVarId_t idZKp;    /* posCtlPid.zKp, 1/s */
+static bool haveZi, haveZKp;
+static bool settling;         /* disabled in the air: holding until Zi has decayed (status 13) */
+static uint32_t settleStart;  /* tick */
 static uint32_t lastBits[3];
 static uint32_t sameTicks; /* ms for which the estimate bits did not change */
 static setpoint_t setpoint;
@@ -179,6 +184,30 @@ static void sendVelocity(float vx, float vy, float vz)
     holding = false;
 }
 
+/* Metres to subtract from a position hold's z so that the PID position controller's stale z integral
+ * (posCtl.Zi) is cancelled: its velocity command is then zKp (z_hold - z), a pure proportional hold
+ * (polycc_app.h).  0 without the PID controller or the log variable. */
+static float ziOffset(void)
+{
+    float zi, kp, off;
+    if (!haveZi || controllerGetType() != ControllerTypePID) {
+        return 0.0f;
+    }
+    zi = logGetFloat(idZi);
+    kp = haveZKp ? paramGetFloat(idZKp) : POLYCC_APP_POS_Z_KP;
+    if (!(kp > 0.1f) || !(zi == zi)) {
+        return 0.0f;
+    }
+    off = zi / kp;
+    if (off > POLYCC_APP_ZI_OFFSET_MAX) {
+        off = POLYCC_APP_ZI_OFFSET_MAX;
+    }
+    if (off < -POLYCC_APP_ZI_OFFSET_MAX) {
+        off = -POLYCC_APP_ZI_OFFSET_MAX;
+    }
+    return off;
+}
+
 /* Position hold at the point where the fallback began (x: the estimate now, if valid). */
 static void holdPosition(const float *x)
 {
@@ -198,7 +227,7 @@ static void holdPosition(const float *x)
     setpoint.mode.yaw = modeVelocity;
     setpoint.position.x = holdPos[0];
     setpoint.position.y = holdPos[1];
-    setpoint.position.z = holdPos[2];
+    setpoint.position.z = holdPos[2] - ziOffset();
     setpoint.attitudeRate.yaw = 0.0f;
     send();
     lUx = 0.0f;
@@ -213,21 +242,56 @@ static void readVector(logVarId_t a, logVarId_t b, logVarId_t c, bool have, floa
     out[2] = have ? logGetFloat(c) : 0.0f;
 }
 
+static float zIntegral(void)
+{
+    float zi = haveZi ? logGetFloat(idZi) : 0.0f;
+    return zi == zi ? zi : 0.0f;
+}
+
+/* The hold of a settling hand-over: the high-level go_to to holdPos, then the priority relaxed. */
+static void finishHandOver(void)
+{
+    float yaw = haveYaw ? logGetFloat(idYaw) * (3.14159265358979f / 180.0f) : 0.0f;
+    settling = false;
+    if (crtpCommanderHighLevelGoTo(holdPos[0], holdPos[1], holdPos[2], yaw, POLYCC_APP_HANDOVER_MIN_S, false) != 0) {
+        holdPosition(0);
+        return;
+    }
+    trace.handovers += 1u;
+    commanderRelaxPriority();
+    engaged = false;
+    holding = false;
+}
+
 /* Give the vehicle to the high-level commander, holding position: go_to the stopping point of
  * a POLYCC_APP_HANDOVER_ACC deceleration (no further than half the last clearance), then relax
  * the priority.  If the high-level commander refuses, the app keeps holding the position itself.
  * If the planner is already running (each app setpoint stops it, so the ground sent a takeoff,
  * go_to or land since the last one, e.g. a land right after enable = 0), its plan is kept: the
- * app only relaxes the priority. */
+ * app only relaxes the priority.
+ * With the PID controller and a wound-up z integral, the app first holds the stopping point itself
+ * (settling, status 13) until the integral has decayed, a high-level command arrives or
+ * POLYCC_APP_SETTLE_MAX_MS passed (polycc_app.h). */
 static void handOverHold(void)
 {
     float x[3], v[3], yaw = 0.0f, s, d, T;
     int i;
     if (!crtpCommanderHighLevelIsStopped()) {
+        /* a high-level command from the ground started a trajectory since the last tick: it takes over */
         trace.handovers += 1u;
+        settling = false;
         commanderRelaxPriority();
         engaged = false;
         holding = false;
+        return;
+    }
+    if (settling) {
+        if (controllerGetType() == ControllerTypePID && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI &&
+            xTaskGetTickCount() - settleStart < M2T(POLYCC_APP_SETTLE_MAX_MS)) {
+            holdPosition(0);
+            return;
+        }
+        finishHandOver();
         return;
     }
     readVector(idX, idY, idZ, haveEstimate, x);
@@ -257,6 +321,14 @@ static void handOverHold(void)
         trace.handover[i] = s > 0.0f ? x[i] + v[i] * (d / s) : x[i];
     }
     trace.handover[3] = T;
+    if (haveZi && controllerGetType() == ControllerTypePID && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI) {
+        memcpy(holdPos, trace.handover, sizeof holdPos);
+        holding = true;
+        settling = true;
+        settleStart = xTaskGetTickCount();
+        holdPosition(0);
+        return;
+    }
     if (crtpCommanderHighLevelGoTo(trace.handover[0], trace.handover[1], trace.handover[2], yaw, T, false) != 0) {
         holdPosition(haveEstimate ? x : 0);
         return;
@@ -277,6 +349,7 @@ static void handOverLand(void)
     if (!(T >= POLYCC_APP_LAND_MIN_S)) {
         T = POLYCC_APP_LAND_MIN_S;
     }
+    settling = false;
     if (crtpCommanderHighLevelLand(0.0f, T) != 0) {
         holdPosition(haveEstimate && coordOk(x[0]) ? x : 0);
         return;
@@ -406,6 +479,12 @@ void polycc_app_init(void)
     haveYaw = logVarIdIsValid(idYaw);
     haveThrust = logVarIdIsValid(idThrust);
     haveVariance = logVarIdIsValid(idVarX) && logVarIdIsValid(idVarY) && logVarIdIsValid(idVarZ);
+    idZi = logGetVarId("posCtl", "Zi");
+    haveZi = logVarIdIsValid(idZi);
+    idZKp = paramGetVarId("posCtlPid", "zKp");
+    haveZKp = PARAM_VARID_IS_VALID(idZKp);
+    settling = false;
+    settleStart = 0u;
     memset(&trace, 0, sizeof trace);
     polycc_swarm_reset(&swarm); /* swarm */
     pSwarmV = POLYCC_APP_DEFAULT_SWARM_V;
@@ -520,16 +599,23 @@ uint32_t polycc_app_tick(void)
             /* idle: no kernel call here, so the shield's 100 Hz planning sets the pace */
             return period > POLYCC_SHIELD_PERIOD_TICKS ? POLYCC_SHIELD_PERIOD_TICKS : period;
         }
+        if (settling) { /* handOverHold sent the settling hold */
+            lStatus = POLYCC_STATUS_HANDING_OVER;
+            lActive = 0u;
+            return period;
+        }
         lStatus = POLYCC_STATUS_DISABLED; /* the high-level commander refused: still holding */
         holdPosition(0);
         return period;
     }
     linkLostLatched = false;
+    settling = false; /* enabled again during a settling hand-over: the app flies on */
     status = mayTakeControl();
     if (status == POLYCC_STATUS_SUPERVISOR) {
         if (engaged) { /* the supervisor stops the motors itself; hand the priority back */
             commanderRelaxPriority();
             engaged = false;
+            settling = false;
         }
         idle(status);
         return period;
@@ -665,7 +751,8 @@ LOG_ADD(LOG_UINT32, evalUs, &lEvalUs)
 /** @brief 0 disabled, 1 ok (engaged), 2 no estimate, 3 bad estimate, 4 stale estimate, 5 inside an obstacle,
  * 6 kernel invalid (2-6 hold position), 7 not flying (take off first), 8 waiting for the high-level commander,
  * 9 controller is not PID, 10 link lost (landing), 11 supervisor locked/crashed/tumbled, 12 scene too slow,
- * 13 a neighbour fell silent (holding) */
+ * 13 a neighbour fell silent (holding), 14 disabled, holding until the position controller has settled before the
+ * hand-over */
 LOG_ADD(LOG_UINT8, status, &lStatus)
 /** @brief Loop rate in use, Hz (rateHz, lowered until the scene's certified worst case fits half a tick) */
 LOG_ADD(LOG_UINT16, rate, &lRate)

@@ -19,6 +19,15 @@
  *   the vehicle to the high-level commander holding position (go_to to the stopping point,
  *   then commanderRelaxPriority), so a later go_to or land works; losing the link hands it to
  *   a high-level landing.  No path sends a stop (motors-off) setpoint.
+ *
+ *   The PID position controller ignores the velocity of position setpoints, so its z integral
+ *   (log posCtl.Zi) winds up during every high-level takeoff or go_to (about zKi h / zKp for a
+ *   climb of h) and is frozen while the app streams velocities; a later position hold then
+ *   settles Zi/zKp away from its setpoint (8 cm after a 0.9 m takeoff in the firmware's SITL).
+ *   So the app's position holds aim at z - Zi/zKp (a pure proportional hold at z), and after a
+ *   disable in the air it keeps that hold until |Zi| < POLYCC_APP_SETTLE_ZI (Zi decays with
+ *   zKp/zKi = 4 s) before it hands over (status 13); a high-level command from the ground
+ *   (go_to, land) during that time takes over at once.
  */
 #ifndef POLYCC_APP_H
 #define POLYCC_APP_H
@@ -44,7 +53,10 @@
 #define POLYCC_STATUS_TOO_SLOW 12u      /* the scene's worst case does not fit even POLYCC_APP_MIN_RATE_HZ: refused */
 #define POLYCC_STATUS_NEIGHBOUR_LOST 13u /* swarm: a neighbour's report is older than POLYCC_SWARM_TIMEOUT_MS:
                                            holding position (docs/swarm.md) */
-#define POLYCC_APP_STATUS_COUNT 14u
+#define POLYCC_STATUS_HANDING_OVER 14u  /* disabled in the air: holding the hand-over point until the PID position
+                                           controller's z integral has decayed (at most POLYCC_APP_SETTLE_MAX_MS; a
+                                           high-level command takes over at once), then the high-level commander */
+#define POLYCC_APP_STATUS_COUNT 15u
 
 /* Defaults of the polycc parameter group. */
 #define POLYCC_APP_DEFAULT_RATE_HZ 500u
@@ -81,6 +93,14 @@
 #define POLYCC_APP_HANDOVER_MIN_S 0.5f /* s */
 #define POLYCC_APP_LAND_SPEED 0.3f     /* m/s */
 #define POLYCC_APP_LAND_MIN_S 2.0f     /* s */
+/* Hand-over after a disable in the air waits (holding) until |posCtl.Zi| is below this (m/s, i.e. at most
+ * Zi/zKp = 1 cm of offset left) or for at most POLYCC_APP_SETTLE_MAX_MS. */
+#define POLYCC_APP_SETTLE_ZI 0.02f
+#define POLYCC_APP_SETTLE_MAX_MS 12000u
+/* posCtlPid.zKp when that param is not found (the firmware's PID_POS_Z_KP), 1/s, and the largest
+ * integral compensation applied to a hold, m. */
+#define POLYCC_APP_POS_Z_KP 2.0f
+#define POLYCC_APP_ZI_OFFSET_MAX 0.2f
 
 /* Braking term (closes the realization gap of a lagging vehicle, bench/bench_sim.py): the
  * kernel's speed limit is min(vmax, s(psi)), s(psi) the largest speed from which the vehicle

@@ -1,5 +1,5 @@
-"""`polycc flash OUT --crazyflie-base PATH`: build the Crazyflie firmware with the polycc app and flash it
-(the steps: :mod:`polycc.ground.flash`)."""
+"""`polycc flash OUT --firmware FWDIR` (or ``--crazyflie-base PATH``): build the Crazyflie firmware with the
+polycc app and flash it (the steps: :mod:`polycc.ground.flash`)."""
 
 from __future__ import annotations
 
@@ -30,15 +30,19 @@ def register(subparsers) -> None:
         help="build the Crazyflie firmware with the polycc app and the scene header, then flash it",
         description=(
             "Copies firmware_app/ and OUT/polytopes.h into a build folder, runs the firmware's out-of-tree "
-            "build (make, tools/make/oot.mk of --crazyflie-base), reports flash and RAM use "
+            "build (make, tools/make/oot.mk of --firmware; a tarball is extracted into the cache first), reports "
+            "flash and RAM use "
             "(arm-none-eabi-size of cf2.elf) and flashes cf2.bin with `python -m cfloader flash cf2.bin "
             "stm32-fw -w URI` (cfloader comes with the cfclient package) over a Crazyradio. Put the "
             "Crazyflie in bootloader mode or let cfloader reset it over the radio (-w)."
         ),
     )
     p.add_argument("out", metavar="OUT", help="build folder of `polycc build` (holds polytopes.h)")
-    p.add_argument("--crazyflie-base", required=True, metavar="PATH",
-                   help="bitcraze/crazyflie-firmware checkout with submodules (git clone --recursive)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--firmware", metavar="FWDIR",
+                     help="the upstream bitcraze/crazyflie-firmware: a checkout with submodules (git clone "
+                          "--recursive) or its .tar.xz/.tar.gz (extracted once into the polycc cache, never edited)")
+    src.add_argument("--crazyflie-base", metavar="PATH", help="the same as --firmware (a firmware tree folder)")
     p.add_argument("--uri", default=os.environ.get("CFLIB_URI", DEFAULT_URI), metavar="URI",
                    help="Crazyflie radio URI (default: $CFLIB_URI or radio://0/80/2M/E7E7E7E7E7)")
     p.add_argument("--build-dir", metavar="DIR", help="where to build (default: OUT/firmware)")
@@ -55,7 +59,13 @@ def run(args) -> int:
     out = Path(args.out)
     if not (out / "polytopes.h").is_file():
         raise PolyccError(f"{out / 'polytopes.h'}: not found; run `polycc build SCENE -o {out}` first")
-    base = Path(args.crazyflie_base).expanduser().resolve()
+    from polycc.firmware_trees import is_tarball, resolve_tree
+
+    source = args.firmware or args.crazyflie_base
+    if is_tarball(source):
+        base = resolve_tree(source, "upstream", lambda m: console.print(m, soft_wrap=True))
+    else:
+        base = Path(source).expanduser().resolve()
     build = Path(args.build_dir).resolve() if args.build_dir else (out / "firmware").resolve()
     flash = not args.no_flash
     notes = []

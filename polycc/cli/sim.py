@@ -45,10 +45,20 @@ def register(subparsers) -> None:
                      help="start position, m (default: the scene's sidecar .json 'start', as `polycc demo-scene` "
                           "writes)")
     add_point_option(p, "--goal", help="goal position, m (default: the scene's sidecar .json 'goal')")
-    p.add_argument("--dynamics", choices=("integrator", "crazyflie", "quadrotor"), default="integrator",
+    p.add_argument("--dynamics", choices=("integrator", "crazyflie", "quadrotor"), default=None,
                    help="vehicle model: the paper's single integrator; the Crazyflie 2.1-like velocity tracking model "
                         "(tilt/thrust limits, attitude lag, 20 ms estimator delay); or the full rigid-body quadrotor "
-                        "under a Crazyflie-like PID cascade (slowest) (default: %(default)s)")
+                        "under a Crazyflie-like PID cascade (slowest) (default: integrator; not with --firmware)")
+    p.add_argument("--firmware", metavar="FWDIR",
+                   help="fly the REAL Crazyflie firmware instead of the host shims: FWDIR is the CrazySim SITL tree "
+                        "(llanesc/crazyflie-firmware sitl-release) or its .tar.xz. Builds a native cf2 with the app "
+                        "and OUT/polytopes.h (cached by content hash), runs it lock-stepped with a rigid-body "
+                        "physics model (Kalman estimator, PID controller) and flies each trial with real cflib: "
+                        "from the floor, high-level takeoff to the start, the app to the goal, high-level landing. "
+                        "About real time or slower (the README has the speed); progress lines per trial")
+    p.add_argument("--firmware-logs", metavar="DIR",
+                   help="with --firmware: keep each trial's cf2.log, bridge.err and trajectory.csv (100 Hz truth) in "
+                        "DIR/trialN (default: not kept, except after an error)")
     p.add_argument("--trials", type=number(int, 1, 100_000), default=1, metavar="N",
                    help="flights from --start to --goal; trials after the first start up to --jitter m away (default: "
                         "%(default)s)")
@@ -124,6 +134,37 @@ def _sidecar_flight(scene_path: str) -> tuple[np.ndarray, np.ndarray] | None:
     return None
 
 
+def _fly_firmware(args, header: Path, sim, scene, cfg, pairs, plans, flown, out: Path) -> list:
+    """The trials flown by the real firmware (polycc.sim.firmware.flights), with progress lines."""
+    from polycc.cli.console import console
+    from polycc.sim.firmware.flights import FirmwareSimulator
+
+    for i in flown:
+        z = float(pairs[i][0][2])
+        if z < 0.2:
+            raise PolyccError(f"start z {z:g} m: the firmware flight takes off from the floor to the start, so it "
+                              "must be at least 0.2 m up")
+    prefix = ["firmware"]
+
+    def say(msg: str) -> None:
+        console.print(f"{prefix[0]}: {msg}", soft_wrap=True, highlight=False)
+
+    fw = FirmwareSimulator(header, args.firmware, sim.packed, sim.kappa, scene.ellipsoids,
+                           run_root=args.firmware_logs, say=say)
+    say(f"cf2 {'from the cache' if fw.build.cached else f'built in {fw.build.seconds:.0f} s'}: {fw.build.cf2}")
+    trials = []
+    for n, i in enumerate(flown):
+        s, g = pairs[i]
+        prefix[0] = f"trial {n + 1}/{len(flown)}"
+        t = fw.fly(s, g, cfg, waypoints=None if plans[i] is None else plans[i].waypoints)
+        e = t.extra or {}
+        say(f"{'ok' if t.success else t.outcome}, {t.time_s:.1f} s simulated, RTF {e.get('rtf') or 0:.2f}, "
+            f"{'landed' if e.get('landed') else 'NOT landed'} (touchdown {e.get('touchdown_ms', 0):.2f} m/s)"
+            + (f", logs {e['run_dir']}" if e.get("run_dir") else ""))
+        trials.append(t)
+    return trials
+
+
 def run(args) -> int:
     from rich.table import Table
 
@@ -136,6 +177,16 @@ def run(args) -> int:
     header = out / "polytopes.h"
     if not header.is_file():
         raise PolyccError(f"{header}: not found; run `polycc build SCENE -o {out}` first")
+    if args.firmware:
+        for opt, val in (("--dynamics", args.dynamics), ("--delay-ms", args.delay_ms)):
+            if val is not None:
+                raise PolyccError(f"{opt} does not apply with --firmware: the real firmware flies the rigid-body model "
+                                  "of polycc.sim.firmware.physics through its own Kalman estimator; drop the option")
+        args.dynamics = "firmware"
+    elif args.firmware_logs:
+        raise PolyccError("--firmware-logs needs --firmware FWDIR")
+    elif args.dynamics is None:
+        args.dynamics = "integrator"
     scene_path = _scene_path(args, out)
     scene = load_scene_from_args(scene_path, args)
     t0 = time.perf_counter()
@@ -176,14 +227,18 @@ def run(args) -> int:
                     no_path[i] = exc
                 update(i + 1)
     trials, flown = [], [i for i in range(len(pairs)) if i not in no_path]
-    with progress_bar(f"flying ({args.dynamics})", len(flown)) as update:
-        for n, i in enumerate(flown):
-            s, g = pairs[i]
-            trials.append(sim.fly(s, g, args.dynamics, cfg, delay_s=delay,
-                                  waypoints=None if plans[i] is None else plans[i].waypoints))
-            update(n + 1)
+    if args.firmware:
+        trials = _fly_firmware(args, header, sim, scene, cfg, pairs, plans, flown, out)
+    else:
+        with progress_bar(f"flying ({args.dynamics})", len(flown)) as update:
+            for n, i in enumerate(flown):
+                s, g = pairs[i]
+                trials.append(sim.fly(s, g, args.dynamics, cfg, delay_s=delay,
+                                      waypoints=None if plans[i] is None else plans[i].waypoints))
+                update(n + 1)
 
-    table = Table(title=f"polycc sim: {args.dynamics}, {args.rate_hz} Hz, vmax {args.vmax:g} m/s, r = {args.radius:g} "
+    title = "real firmware (SITL)" if args.firmware else args.dynamics
+    table = Table(title=f"polycc sim: {title}, {args.rate_hz} Hz, vmax {args.vmax:g} m/s, r = {args.radius:g} "
                         "m",
                   header_style="bold", caption="start, goal in m; ok = within 5 cm of the goal; clear = min distance "
                                                "to the "
@@ -215,6 +270,7 @@ def run(args) -> int:
         "trials": [{"start": t.start.tolist(), "goal": t.goal.tolist(), "success": t.success, "outcome": t.outcome,
                     "time_s": t.time_s, "path_length_m": t.path_length_m, "length_ratio": t.length_ratio,
                     "min_clearance_m": t.min_clearance_m, "collisions": t.collisions, "max_eval_us": t.max_eval_us,
+                    **({"firmware": t.extra} if t.extra else {}),
                     **({} if plans[i] is None else {"plan": {
                         "waypoints": plans[i].waypoints.tolist(), "length_m": plans[i].length_m,
                         "waypoints_reached": t.reached}})}

@@ -52,9 +52,19 @@ def register(subparsers) -> None:
                         "(default: on the floor, motors off)")
     p.add_argument("--floor-z", type=number(float, -1000.0, 1000.0, unit="m"), default=0.0, metavar="Z",
                    help="height of the floor the vehicle stands and lands on, m (default: %(default)s)")
-    p.add_argument("--dynamics", choices=("crazyflie", "integrator", "quadrotor"), default="crazyflie",
+    p.add_argument("--dynamics", choices=("crazyflie", "integrator", "quadrotor"), default=None,
                    help="vehicle model: Crazyflie 2.1-like velocity tracking, the single integrator, or the full "
-                        "rigid-body quadrotor (see `polycc sim --help`) (default: %(default)s)")
+                        "rigid-body quadrotor (see `polycc sim --help`) (default: crazyflie; not with --firmware)")
+    p.add_argument("--firmware", metavar="FWDIR",
+                   help="serve the REAL Crazyflie firmware instead of the host model: FWDIR is the CrazySim SITL "
+                        "tree (llanesc/crazyflie-firmware sitl-release) or its .tar.xz. Builds a native cf2 with "
+                        "the app and OUT/polytopes.h (cached), runs it lock-stepped with a rigid-body physics model "
+                        "and relays CRTP on --udp: the firmware's full TOC (kalman, supervisor, high-level "
+                        "commander, ...) for cflib, MotionCommander, PositionHlCommander and cfclient. UDP only; "
+                        "the vehicle starts on the floor below --start")
+    p.add_argument("--firmware-logs", metavar="DIR",
+                   help="with --firmware: keep cf2.log, bridge.err and trajectory.csv (100 Hz truth) in DIR "
+                        "(default: a temporary folder, removed on a clean stop)")
     p.add_argument("--delay-ms", type=number(float, 0.0, 1000.0, unit="ms"), default=None, metavar="MS",
                    help="estimator delay, ms (default: the model's own, 20 for crazyflie and quadrotor)")
     p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=None, metavar="HZ",
@@ -66,6 +76,74 @@ def register(subparsers) -> None:
     p.add_argument("--duration", type=number(float, 0.0, 1e7, lo_open=True, unit="s"), default=None, metavar="S",
                    help="stop after S seconds (default: run until Ctrl-C)")
     p.set_defaults(func=run)
+
+
+def _start_goal(args, out: Path):
+    """--start (else the scene sidecar's start, else the origin) and the sidecar's goal (or None)."""
+    start, goal = args.start, None
+    scene, _, _ = build_scene(args, out) if (out / "manifest.json").is_file() else (args.scene, None, None)
+    side = _sidecar_flight(scene) if scene else None
+    if side is not None:
+        goal = side[1]
+        if start is None:
+            start = side[0]
+    if start is None:
+        start = (0.0, 0.0, 0.0)
+    return start, goal
+
+
+def _run_firmware(args, out: Path, header: Path, udp) -> int:
+    """The real firmware's SITL as the device (polycc.sim.firmware)."""
+    from polycc.cli.console import console
+    from polycc.sim.firmware.build import build_cf2
+    from polycc.sim.firmware.sitl import FirmwareSitl
+
+    for opt, bad in (("--serial", args.serial), ("--airborne", args.airborne), ("--dynamics", args.dynamics),
+                     ("--delay-ms", args.delay_ms), ("--rate-hz", args.rate_hz),
+                     ("--floor-z", args.floor_z != 0.0), ("--estimate-noise", args.estimate_noise != 0.001)):
+        if bad:
+            raise PolyccError(f"{opt} does not apply with --firmware: the real firmware runs its own estimator and "
+                              "controller on the rigid-body model, from the floor at z = 0, over UDP (set polycc.* "
+                              "params from your client); drop the option")
+    if udp is None:
+        raise PolyccError(f"--firmware serves UDP only: give --udp HOST:PORT (e.g. --udp {DEFAULT_UDP})")
+    start, goal = _start_goal(args, out)
+
+    def say(msg: str) -> None:
+        console.print(f"firmware: {msg}", soft_wrap=True, highlight=False)
+
+    fw = build_cf2(args.firmware, header, log=say)
+    say(f"cf2 {'from the cache' if fw.cached else f'built in {fw.seconds:.0f} s'}: {fw.cf2}")
+    x, y = float(start[0]), float(start[1])
+    sitl = FirmwareSitl(fw, start=(x, y, 0.0), cflib_host=udp[0], cflib_port=udp[1], run_dir=args.firmware_logs)
+    try:
+        with sitl:
+            say(f"booted in {sitl.t_ready:.1f} s: the real Crazyflie firmware (CrazySim SITL, Kalman + PID) with "
+                f"{out}/polytopes.h, on the floor at {x:g},{y:g},0 m, motors off")
+            console.print(f"URI: {sitl.uri}", soft_wrap=True)
+            g = ",".join(f"{v:g}" for v in goal) if goal is not None else "X,Y,Z"
+            console.print(f"try: polycc fly --uri {sitl.uri} --takeoff 0.9 --goal {g} --land    (Ctrl-C stops the "
+                          "device)", soft_wrap=True)
+            sys.stdout.flush()  # the URI must reach a pipe at once (scripts wait for it)
+            t_end = None if args.duration is None else time.monotonic() + args.duration
+            last = time.monotonic()
+            while t_end is None or time.monotonic() < t_end:
+                time.sleep(0.2)
+                sitl.check_alive()
+                if time.monotonic() - last >= 10.0:
+                    last = time.monotonic()
+                    s, st = sitl.state(), sitl.stats()
+                    p = s["pos"]
+                    console.print(f"t {s['t']:.1f} s simulated (RTF {st.get('rtf') or 0:.2f}), position "
+                                  f"{p[0]:.2f},{p[1]:.2f},{p[2]:.2f} m, motors {'on' if s['motors_on'] else 'off'}, "
+                                  f"cflib packets {st.get('cflib_to_fw', 0)} in / {st.get('fw_to_cflib', 0)} out",
+                                  soft_wrap=True, highlight=False)
+            st = sitl.stats()
+    except KeyboardInterrupt:
+        st = None
+    console.print(f"stopped: {st['sim_t']:.1f} s simulated in {st['wall_t']:.1f} s (RTF {st.get('rtf') or 0:.2f}); "
+                  f"ports freed" if st else "stopped (Ctrl-C); processes ended, ports freed", soft_wrap=True)
+    return 0
 
 
 def run(args) -> int:
@@ -81,16 +159,14 @@ def run(args) -> int:
     if not args.udp and not args.serial:
         raise PolyccError(f"give --udp HOST:PORT (e.g. --udp {DEFAULT_UDP}) and/or --serial")
     udp = parse_host_port(args.udp) if args.udp else None
+    if args.firmware:
+        return _run_firmware(args, out, header, udp)
+    if args.firmware_logs:
+        raise PolyccError("--firmware-logs needs --firmware FWDIR")
+    if args.dynamics is None:
+        args.dynamics = "crazyflie"
 
-    start, goal = args.start, None
-    scene, _, _ = build_scene(args, out) if (out / "manifest.json").is_file() else (args.scene, None, None)
-    side = _sidecar_flight(scene) if scene else None
-    if side is not None:
-        goal = side[1]
-        if start is None:
-            start = side[0]
-    if start is None:
-        start = (0.0, 0.0, 0.0)
+    start, goal = _start_goal(args, out)
 
     with console.status("building the app for this machine"):
         if not args.airborne:

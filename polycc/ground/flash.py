@@ -131,15 +131,103 @@ def plan(out: Path, base: Path, build: Path, uri: str, jobs: int, flash: bool) -
     return steps
 
 
+def sync_file(src: Path, dst: Path) -> bool:
+    """Copy ``src`` to ``dst`` unless ``dst`` already has the same bytes; a copied file gets the current
+    mtime (not the source's, as copy2 would keep), so make rebuilds what depends on it even when the new
+    file is older than the objects of a reused build folder. True if it copied."""
+    if dst.is_file() and dst.read_bytes() == src.read_bytes():
+        return False
+    shutil.copyfile(src, dst)
+    shutil.copymode(src, dst)
+    return True
+
+
 def copy_app(out: Path, app: Path, base: Path) -> None:
+    """The app and ``out/polytopes.h`` into ``app`` (a reused build folder recompiles exactly what changed)."""
     app.mkdir(parents=True, exist_ok=True)
     for f in APP_FILES:
-        shutil.copy2(resources.firmware_app() / f, app / f)
+        sync_file(resources.firmware_app() / f, app / f)
     (app / "src").mkdir(exist_ok=True)
     for f in (resources.firmware_app() / "src").iterdir():
         if f.suffix in (".c", ".h") or f.name == "Kbuild":
-            shutil.copy2(f, app / "src" / f.name)
-    shutil.copy2(out / "polytopes.h", app / "polytopes.h")
+            sync_file(f, app / "src" / f.name)
+    sync_file(out / "polytopes.h", app / "polytopes.h")
     if not (base / ".git").exists():
         (app / "build").mkdir(exist_ok=True)
         (app / "build" / "build_info.json").write_text(json.dumps({"tag": f"polycc-{__version__}"}) + "\n")
+
+
+# --------------------------------------------------------------------------- library build (tests, bench)
+@dataclass
+class FirmwareBuild:
+    """An out-of-tree Cortex-M4 build: ``elf`` (cf2.elf), firmware ``sizes`` (:func:`firmware_sizes`), the
+    app objects' text/data/bss, the compiler ``warnings`` (lines with ``warning:``), wall ``seconds``, ``log``."""
+
+    elf: Path
+    sizes: dict
+    objects: dict
+    warnings: list
+    seconds: float
+    log: Path
+
+
+def make_oot(app: Path, base: Path, jobs: int = 2, extra: tuple = (), say=None) -> FirmwareBuild:
+    """``make`` an out-of-tree app folder ``app`` (run from inside it, PWD set: oot.mk's ``OOT ?= $(PWD)``)
+    against the firmware tree ``base``; a ``build_info.json`` goes into ``app/build`` when ``base`` has no
+    .git (the firmware's release-version mechanism, read from the Kbuild output folder). Output to
+    ``app/build.log``; a failed build is a one-line error with its first error line."""
+    import os
+    import re
+    import time
+
+    say = say or (lambda msg: None)
+    t0 = time.monotonic()
+    check_toolchain()
+    if not (base / ".git").exists():
+        (app / "build").mkdir(parents=True, exist_ok=True)
+        bi = app / "build" / "build_info.json"
+        if not bi.is_file():
+            bi.write_text(json.dumps({"tag": f"polycc-{__version__}"}) + "\n")
+    logf = app / "build.log"
+    cmd = ["make", f"-j{max(1, int(jobs))}", f"CRAZYFLIE_BASE={base}", *extra]
+    say(f"building {app.name} against {base.name} ({' '.join(cmd)})")
+    with open(logf, "w") as lf:
+        proc = subprocess.Popen(cmd, cwd=app, env={**os.environ, "PWD": str(app)}, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+        n, last = 0, time.monotonic()
+        for line in proc.stdout:
+            lf.write(line)
+            if line.lstrip().startswith(("CC ", "AS ", "LD ")):
+                n += 1
+                if time.monotonic() - last > 10.0:
+                    last = time.monotonic()
+                    say(f"  {n} files compiled")
+        rc = proc.wait()
+    text = logf.read_text(errors="replace")
+    if rc != 0:
+        m = re.search(r"^.*?(error|Error \d+).*$", text, re.M)
+        raise PolyccError(f"firmware build of {app} failed (exit {rc}): {m.group(0).strip()[:240] if m else ''} "
+                          f"(full log: {logf})")
+    elf = app / "build" / "cf2.elf"
+    objs = {o.stem: size_report(o) for o in sorted((app / "src").glob("*.o"))}
+    warnings = [ln.strip() for ln in text.splitlines() if "warning:" in ln]
+    return FirmwareBuild(elf, firmware_sizes(elf), objs, warnings, time.monotonic() - t0, logf)
+
+
+def build_app(out: Path, base: Path, build: Path, jobs: int = 2, say=None) -> FirmwareBuild:
+    """The polycc app with ``out/polytopes.h`` built into ``build/polycc_app`` (reused: a second header
+    recompiles only the app)."""
+    app = build / "polycc_app"
+    copy_app(out, app, base)
+    return make_oot(app, base, jobs, (f"POLYCC_SCENE={app / 'polytopes.h'}",), say)
+
+
+def build_hello_world(base: Path, build: Path, jobs: int = 2, say=None) -> FirmwareBuild:
+    """The firmware's own ``examples/app_hello_world`` (the baseline), copied to ``build/app_hello_world``."""
+    src = base / "examples" / "app_hello_world"
+    if not (src / "Makefile").is_file():
+        raise PolyccError(f"{src}: the firmware's app_hello_world example is missing")
+    app = build / "app_hello_world"
+    if not app.exists():
+        shutil.copytree(src, app)
+    return make_oot(app, base, jobs, (), say)

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from polycc.errors import PolyccError
+from polycc.link.cflib_tools import close_without_stop, set_param
 from polycc.onboard.app import REPLY_FORMAT, STATUS_NAMES, STATUS_TEXT, STOP_REASONS
 
 DEFAULT_URI = "udp://127.0.0.1:19850"
@@ -103,28 +104,6 @@ def _blocks(names: list[str], types: dict[str, str]) -> list[list[str]]:
         blocks[-1].append(n)
         used += size
     return blocks
-
-
-def set_param(cf, name: str, value: float, timeout_s: float = 3.0) -> None:
-    """Write a param and wait until the Crazyflie confirms it (cflib does not retransmit)."""
-    done = threading.Event()
-    group, short = name.split(".", 1)
-
-    def cb(_name, _value):
-        done.set()
-
-    cf.param.add_update_callback(group=group, name=short, cb=cb)
-    try:
-        for _ in range(3):
-            cf.param.set_value(name, value)
-            if done.wait(timeout_s / 3):
-                return
-        raise PolyccError(f"no confirmation of {name} = {value:g} within {timeout_s:g} s; check the link")
-    finally:
-        try:
-            cf.param.remove_update_callback(group=group, name=short, cb=cb)
-        except Exception:  # older cflib without remove_update_callback
-            pass
 
 
 def _has_param(cf, name: str) -> bool:
@@ -273,20 +252,6 @@ def fly(uri: str, goal, log_vars: list[str], timeout_s: float = 60.0, arrive_tol
                 pass
         close_without_stop(scf)
     return log
-
-
-def close_without_stop(scf) -> None:
-    """Close a cflib session without cflib's parting ``send_setpoint(0, 0, 0, 0)``, which at CRTP
-    priority stops the high-level commander and cuts the motors of a drone still in the air."""
-    cf = scf.cf
-    link = getattr(cf, "link", None)
-    if link is not None:
-        try:
-            link.close()
-        except Exception:
-            pass
-        cf.link = None
-    scf.close_link()
 
 
 def _flight(cf, session: _Session, log: FlightLog, goals, arrive_tol: float, takeoff, land: bool) -> None:

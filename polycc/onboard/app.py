@@ -10,6 +10,7 @@ STATUS_NAMES = {
     0: "disabled", 1: "ok", 2: "no estimate", 3: "bad estimate", 4: "stale estimate", 5: "inside",
     6: "kernel invalid", 7: "not flying", 8: "waiting for the high-level commander", 9: "controller is not PID",
     10: "link lost", 11: "supervisor locked or crashed", 12: "scene too slow", 13: "neighbour lost",
+    14: "handing over",
 }
 # What each status means for the user, in words (`polycc fly` prints these).
 STATUS_TEXT = {
@@ -27,8 +28,10 @@ STATUS_TEXT = {
     11: "the supervisor has locked the vehicle or detected a crash/tumble: nothing is sent",
     12: "the scene's worst-case evaluation does not fit even 10 Hz: rebuild with --rate-hz",
     13: "a neighbour's position report is older than 0.5 s: holding position (docs/swarm.md)",
+    14: "disabled in the air: holding the hand-over point until the z integral has decayed, then the high-level "
+        "commander holds",
 }
-FLYING = {1, 2, 3, 4, 5, 6, 13}  # statuses in which the app streams setpoints (owns the vehicle)
+FLYING = {1, 2, 3, 4, 5, 6, 13, 14}  # statuses in which the app streams setpoints (owns the vehicle)
 STOP_REASONS = {5, 6, 9, 10, 11, 12}  # statuses that end a `polycc fly` run with an error
 REPLY_FORMAT = "<BBffff"
 """App-channel reply head (POLYCC_APP_REPLY_BYTES): status, enable, psi (m), estimate x, y, z (m); then an

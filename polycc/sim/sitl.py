@@ -86,6 +86,7 @@ class Trial:
     shield: dict | None = None  # the shield's counters (polycc_controller_trace_t) when cfg.shield
     rate_gap: np.ndarray | None = None  # per app tick: grad psi . (v_true - u_commanded), m/s (Prop. 1 of seed 001)
     jerk: np.ndarray | None = None  # |da/dt| of the true vehicle at 100 Hz, m/s^3
+    extra: dict | None = None  # simulator-specific facts (the real-firmware SITL: RTF, connect, landing)
 
     @property
     def length_ratio(self) -> float:

@@ -39,3 +39,22 @@ def gaussian_columns(n: int, seed: int = 0, scale_log=(-5.0, -3.0)) -> dict[str,
     for i in range(4):
         cols[f"rot_{i}"] = q[:, i]
     return cols
+
+
+def firmware_tarball(kind: str) -> Path:
+    """The shared firmware fixture: ``kind`` ``"sitl"`` (CrazySim SITL fork) or ``"upstream"`` (bitcraze);
+    ``POLYCC_SITL_TREE`` / ``POLYCC_UPSTREAM_TREE`` override it with a tree folder or another tarball."""
+    env = {"sitl": "POLYCC_SITL_TREE", "upstream": "POLYCC_UPSTREAM_TREE"}[kind]
+    if os.environ.get(env):
+        return Path(os.environ[env])
+    pattern = "crazyflie-firmware-sitl-*.tar.xz" if kind == "sitl" else "crazyflie-firmware-[0-9a-f]*.tar.xz"
+    found = sorted(FIRMWARE.glob(pattern))
+    return found[-1] if found else FIRMWARE / pattern
+
+
+def sitl_tarball() -> Path:
+    return firmware_tarball("sitl")
+
+
+def upstream_tarball() -> Path:
+    return firmware_tarball("upstream")

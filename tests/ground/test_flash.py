@@ -57,3 +57,27 @@ def test_flash_errors_are_clear(walls, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
     assert main(["flash", str(d), "--crazyflie-base", str(base)]) == 2
     assert "no ARM toolchain" in capsys.readouterr().err
+
+
+def test_copy_app_refreshes_an_older_header_in_a_reused_build_folder(tmp_path):
+    """Regression: copy2 kept the new header's (older) mtime, so make kept the previous scene's objects
+    and a reused build folder flashed the OLD obstacles (found by the 16/64 KiB build of the issue-13 bench)."""
+    import os
+
+    from polycc.ground.flash import copy_app
+
+    a, b, app = tmp_path / "a", tmp_path / "b", tmp_path / "fw" / "polycc_app"
+    for d, text in ((a, "/* scene A */\n"), (b, "/* scene B */\n")):
+        d.mkdir()
+        (d / "polytopes.h").write_text(text)
+    os.utime(b / "polytopes.h", (1_000_000, 1_000_000))  # B is older than everything
+    copy_app(a, app, tmp_path)
+    obj = app / "src" / "polycc_app.o"
+    obj.write_text("built from A")
+    t_obj = obj.stat().st_mtime
+    copy_app(b, app, tmp_path)
+    assert (app / "polytopes.h").read_text() == "/* scene B */\n"
+    assert (app / "polytopes.h").stat().st_mtime >= t_obj  # make sees the header as newer than the object
+    m = (app / "polytopes.h").stat().st_mtime_ns
+    copy_app(b, app, tmp_path)  # same bytes: left alone, nothing rebuilds
+    assert (app / "polytopes.h").stat().st_mtime_ns == m

@@ -84,3 +84,12 @@ void shimParamRegisterGroup(const struct param_s *table);
     PARAM_ADD_GROUP(PARAM_GROUP | PARAM_STOP, stop_##NAME, 0x0) \
     };
 #endif
+
+/* param_logic.h (included by the firmware's param.h): look-up of a parameter by name, for apps. */
+typedef struct paramVarId_s {
+    uint16_t id;
+    uint16_t index;
+} __attribute__((packed)) paramVarId_t;
+#define PARAM_VARID_IS_VALID(varId) ((varId).id != 0xffffu)
+paramVarId_t paramGetVarId(const char *group, const char *name);
+float paramGetFloat(paramVarId_t varid);

@@ -116,6 +116,10 @@ size_t shim_appchannel_pop(void *buffer, size_t max_length);
 
 /* Attitude and thrust of the simulated vehicle (log stateEstimate.roll/pitch/yaw, stabilizer.*). */
 void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thrust);
+/* The PID position controller's z integral output (log posCtl.Zi, m/s), and its gains as the params
+ * posCtlPid.zKp (which 0, 1/s) and zKi (which 1, 1/s^2) hold them. */
+void shim_set_position_integrator(float zi);
+float shim_position_gain(int which);
 
 /* DEBUG_PRINT output since the last read (NUL-terminated, truncated to n-1 bytes). */
 size_t shim_debug_read(char *buf, size_t n);

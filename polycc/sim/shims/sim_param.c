@@ -152,3 +152,17 @@ int shim_param_set(int index, double value)
     }
     return 0;
 }
+
+paramVarId_t paramGetVarId(const char *group, const char *name)
+{
+    paramVarId_t id;
+    int i = shim_param_index(group, name);
+    id.id = i < 0 ? 0xffffu : (uint16_t)i;
+    id.index = id.id;
+    return id;
+}
+
+float paramGetFloat(paramVarId_t varid)
+{
+    return varid.id == 0xffffu ? 0.0f : (float)shim_param_value((int)varid.id);
+}

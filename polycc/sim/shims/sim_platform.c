@@ -1,7 +1,9 @@
 /* Host versions of the firmware log and parameter groups that standard Crazyflie tools use
  * (cflib's MotionCommander and PositionHlCommander, cfclient's tabs) and that the app reads:
  * stabilizer.{roll,pitch,yaw,thrust} and stabilizer.controller/estimator, commander.enHighLevel,
- * kalman.resetEstimation, supervisor.info, pm.vbat/state, deck.* flags (no deck attached). */
+ * kalman.resetEstimation, supervisor.info, pm.vbat/state, deck.* flags (no deck attached), and the PID
+ * position controller's z integral output posCtl.Zi with its gains posCtlPid.zKp/zKi (the vehicle model
+ * integrates it, shim_set_position_integrator). */
 #include <string.h>
 
 #include "controller.h"
@@ -18,6 +20,8 @@ static uint16_t landedTimeout = 1000u, supervisorInfo;
 static float vbat = 4.0f;
 static int8_t pmState;
 static uint8_t deckNone;
+static float posZi;                      /* m/s */
+static float posZKp = 2.0f, posZKi = 0.5f; /* the firmware's PID_POS_Z_KP / KI */
 
 void shimPlatformReset(void)
 {
@@ -26,6 +30,19 @@ void shimPlatformReset(void)
     estimatorParam = 2;
     stopParam = enHighLevel = resetEstimation = infdmp = 0;
     supervisorInfo = 0;
+    posZi = 0.0f;
+    posZKp = 2.0f;
+    posZKi = 0.5f;
+}
+
+void shim_set_position_integrator(float zi)
+{
+    posZi = zi;
+}
+
+float shim_position_gain(int which)
+{
+    return which == 0 ? posZKp : posZKi;
 }
 
 void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thrust_cmd)
@@ -56,6 +73,10 @@ LOG_GROUP_START(supervisor)
 LOG_ADD(LOG_UINT16, info, &supervisorInfo)
 LOG_GROUP_STOP(supervisor)
 
+LOG_GROUP_START(posCtl)
+LOG_ADD(LOG_FLOAT, Zi, &posZi)
+LOG_GROUP_STOP(posCtl)
+
 LOG_GROUP_START(pm)
 LOG_ADD_CORE(LOG_FLOAT, vbat, &vbat)
 LOG_ADD_CORE(LOG_INT8, state, &pmState)
@@ -79,6 +100,11 @@ PARAM_GROUP_START(supervisor)
 PARAM_ADD(PARAM_UINT8, infdmp, &infdmp)
 PARAM_ADD(PARAM_UINT16, landedTimeout, &landedTimeout)
 PARAM_GROUP_STOP(supervisor)
+
+PARAM_GROUP_START(posCtlPid)
+PARAM_ADD(PARAM_FLOAT | PARAM_PERSISTENT, zKp, &posZKp)
+PARAM_ADD(PARAM_FLOAT | PARAM_PERSISTENT, zKi, &posZKi)
+PARAM_GROUP_STOP(posCtlPid)
 
 PARAM_GROUP_START(deck)
 PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcFlow2, &deckNone)

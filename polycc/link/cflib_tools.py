@@ -1,0 +1,88 @@
+"""Small helpers around Bitcraze's cflib sessions, shared by `polycc fly` and the real-firmware SITL.
+
+* :func:`set_param` writes a param and waits for the Crazyflie's confirmation (cflib does not
+  retransmit a lost write on UDP);
+* :func:`close_without_stop` closes a session without cflib's parting ``send_setpoint(0, 0, 0, 0)``,
+  which at CRTP priority stops the high-level commander and cuts the motors of a drone in the air;
+* :func:`connect` opens a :class:`~cflib.crazyflie.syncCrazyflie.SyncCrazyflie` and waits for the TOCs
+  and param values, with a wall-clock watchdog (cflib waits forever for a lost reply).
+"""
+
+from __future__ import annotations
+
+import threading
+
+from polycc.errors import PolyccError
+
+
+def set_param(cf, name: str, value: float, timeout_s: float = 3.0) -> None:
+    """Write a param and wait until the Crazyflie confirms it (cflib does not retransmit)."""
+    done = threading.Event()
+    group, short = name.split(".", 1)
+
+    def cb(_name, _value):
+        done.set()
+
+    cf.param.add_update_callback(group=group, name=short, cb=cb)
+    try:
+        for _ in range(3):
+            cf.param.set_value(name, value)
+            if done.wait(timeout_s / 3):
+                return
+        raise PolyccError(f"no confirmation of {name} = {value:g} within {timeout_s:g} s; check the link")
+    finally:
+        try:
+            cf.param.remove_update_callback(group=group, name=short, cb=cb)
+        except Exception:  # older cflib without remove_update_callback
+            pass
+
+
+def close_without_stop(scf) -> None:
+    """Close a cflib session without cflib's parting ``send_setpoint(0, 0, 0, 0)``, which at CRTP
+    priority stops the high-level commander and cuts the motors of a drone still in the air."""
+    cf = scf.cf
+    link = getattr(cf, "link", None)
+    if link is not None:
+        try:
+            link.close()
+        except Exception:
+            pass
+        cf.link = None
+    scf.close_link()
+
+
+def connect(uri: str, timeout_s: float = 60.0, rw_cache: str | None = None):
+    """A connected ``SyncCrazyflie`` with its TOCs and all param values read, or a one-line error after
+    ``timeout_s`` wall seconds. ``rw_cache``: cflib's TOC cache folder (a repeat connect skips the TOC)."""
+    try:
+        import cflib.crtp
+        from cflib.crazyflie import Crazyflie
+        from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
+        from cflib.crtp.serialdriver import SerialDriver
+    except ImportError:
+        raise PolyccError("this needs Bitcraze's cflib: pip install 'polycc[crazyflie]' (or pip install "
+                          "'cflib>=0.1.32')") from None
+    if SerialDriver not in cflib.crtp.CLASSES:  # init_drivers appends the drivers again on every call
+        cflib.crtp.init_drivers(enable_serial_driver=True)
+    scf = SyncCrazyflie(uri, cf=Crazyflie(rw_cache=rw_cache))
+    result: dict = {}
+
+    def run():
+        try:
+            scf.open_link()
+            scf.wait_for_params()
+            result["ok"] = True
+        except BaseException as e:  # noqa: BLE001 - reported below
+            result["error"] = e
+
+    t = threading.Thread(target=run, name="cflib-connect", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive() or "error" in result:
+        try:
+            close_without_stop(scf)
+        except Exception:
+            pass
+        why = f"{result['error']}" if "error" in result else f"no TOC and param values within {timeout_s:g} s"
+        raise PolyccError(f"cflib could not connect to {uri}: {why}")
+    return scf

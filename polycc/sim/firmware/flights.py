@@ -1,0 +1,209 @@
+"""`polycc sim --firmware`: the flights of the fast `polycc sim`, flown by the real Crazyflie firmware.
+
+One trial (:meth:`FirmwareSimulator.fly`), all in simulated time:
+
+1. a fresh SITL instance (:class:`~polycc.sim.firmware.sitl.FirmwareSitl`) with the vehicle on the floor
+   below the start (x, y, z = 0), motors off;
+2. real cflib connects (TOC and param values; the TOC cache makes later trials faster) and sets the
+   ``polycc`` params of the :class:`~polycc.sim.sitl.FlightConfig`;
+3. high-level takeoff to the start height (at most 0.5 m/s), then ``polycc.enable = 1`` with the goal:
+   the app flies through the certified filter. The trial's clock starts here, as the fast simulator's
+   starts hovering at the start;
+4. it ends like the fast one: within ``goal_tol_m`` of the goal ("goal"), moved less than
+   ``stuck_dist_m`` in ``stuck_window_s`` ("stuck"), or ``t_max_s`` ("timeout"); waypoints of a plan
+   are switched by the same rule;
+5. ``polycc.enable = 0`` (the app hands over to the high-level commander), high-level landing, session
+   closed without cflib's motor-cutting stop setpoint, processes stopped.
+
+The trial's path is the bridge's truth at 100 Hz of simulated time from step 3 to step 4; clearance to
+the ground-truth ellipsoids and collisions are computed exactly as for the fast simulator
+(:mod:`polycc.sim.clearance`), ``max_eval_us`` with the cycle model at the logged estimates (the SITL's
+``usecTimestamp`` has 1 ms resolution, so the firmware's own ``polycc.evalUs`` says nothing).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from polycc.budget import cycle_model
+from polycc.errors import PolyccError
+from polycc.link.cflib_tools import close_without_stop, connect, set_param
+from polycc.sim.clearance import Clearance, densify
+from polycc.sim.firmware.build import Cf2Build, build_cf2
+from polycc.sim.firmware.sitl import FirmwareSitl
+from polycc.sim.sitl import FlightConfig, Trial
+
+TAKEOFF_SPEED = 0.5  # m/s
+LAND_SPEED = 0.3     # m/s
+SAMPLE_S = 0.02      # polling period of the truth, wall seconds
+LOG_VARS = (("stateEstimate.x", "float"), ("stateEstimate.y", "float"), ("stateEstimate.z", "float"),
+            ("polycc.status", "uint8_t"), ("polycc.psi", "float"))
+
+
+class FirmwareSimulator:
+    """Real-firmware trials for one build folder (``polytopes.h``) and a SITL tree or tarball.
+
+    ``packed`` (a :class:`~polycc.onboard.layout.PackedScene`) and ``kappa`` feed the cycle model;
+    ``ellipsoids`` the ground-truth clearance. ``run_root``: per-trial folders with ``cf2.log``,
+    ``bridge.err`` and ``trajectory.csv`` (default: temporary, removed after a clean trial).
+    ``say(msg)`` gets progress lines."""
+
+    def __init__(self, header, tree, packed, kappa: float, ellipsoids=None, run_root=None, rtf_max: float = 1.0,
+                 say=None, build: Cf2Build | None = None, connect_timeout_s: float = 90.0):
+        self.say = say or (lambda msg: None)
+        self.build = build or build_cf2(tree, header, log=self.say)
+        self.packed, self.kappa = packed, kappa
+        self.clearance = Clearance(ellipsoids) if ellipsoids is not None and len(ellipsoids) else None
+        self.run_root = Path(run_root) if run_root is not None else None
+        self.rtf_max = rtf_max
+        self.connect_timeout_s = connect_timeout_s
+        self.n = 0
+        # cflib's TOC cache is left off: both stalled connects seen had it on (not root-caused); ~1 s per connect
+        self.toc_cache = None
+
+    def fly(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
+        cfg = cfg or FlightConfig()
+        self.n += 1
+        start = np.asarray(start, np.float64)
+        goal = np.asarray(goal, np.float64)
+        targets = goal[None] if waypoints is None else np.asarray(waypoints, np.float64).reshape(-1, 3)
+        if not np.allclose(targets[-1], goal):
+            raise PolyccError("the plan's last waypoint is not the goal; plan again for this goal")
+        if len(targets) > 1 and np.allclose(targets[0], start):
+            targets = targets[1:]
+        run_dir = None if self.run_root is None else self.run_root / f"trial{self.n}"
+        sitl = FirmwareSitl(self.build, start=(start[0], start[1], 0.0), run_dir=run_dir, rtf_max=self.rtf_max)
+        with sitl:
+            self.say(f"firmware booted in {sitl.t_ready:.1f} s ({sitl.uri})")
+            t_c = time.monotonic()
+            try:
+                scf = connect(sitl.uri, self.connect_timeout_s, self.toc_cache)
+            except PolyccError as exc:
+                # a connect that stalls with no packet loss the ARQ saw was seen twice in ~40 connects on a
+                # heavily loaded host; a fresh cflib session connected each time (reported, not hidden)
+                self.say(f"{exc}; retrying once with a fresh cflib session")
+                scf = connect(sitl.uri, self.connect_timeout_s, None)
+            try:
+                self.say(f"cflib connected in {time.monotonic() - t_c:.1f} s")
+                trial, extra = self._flight(sitl, scf.cf, start, goal, targets, cfg)
+                if waypoints is not None:
+                    trial.waypoints = np.asarray(waypoints, np.float64).reshape(-1, 3)
+            finally:
+                close_without_stop(scf)
+            st = sitl.stats()
+            extra.update(rtf=st.get("rtf"), sim_s=st.get("sim_t"), wall_s=st.get("wall_t"),
+                         retransmits=st.get("arq_retransmits", 0), run_dir=str(sitl.run_dir) if run_dir else None)
+        trial.extra = extra
+        if self.clearance is not None:
+            r_phys = cfg.radius if cfg.clearance_radius is None else cfg.clearance_radius
+            trial.min_clearance_m, trial.collisions, _ = self.clearance.evaluate(densify(trial.positions), r_phys)
+        return trial
+
+    # ------------------------------------------------------------------ one flight
+    def _flight(self, sitl: FirmwareSitl, cf, start, goal, targets, cfg: FlightConfig):
+        from cflib.crazyflie.log import LogConfig
+
+        lock = threading.Lock()
+        samples: list[tuple] = []
+        latest: dict = {}
+
+        def on_log(ts, data, conf):
+            with lock:
+                latest.update(data)
+                samples.append((ts, latest.get("stateEstimate.x"), latest.get("stateEstimate.y"),
+                                latest.get("stateEstimate.z"), latest.get("polycc.status", -1)))
+
+        lc = LogConfig(name="polyccsim", period_in_ms=20)
+        for name, ctype in LOG_VARS:
+            lc.add_variable(name, ctype)
+        lc.data_received_cb.add_callback(on_log)
+        cf.log.add_config(lc)
+        lc.start()
+        for name, value in (("rateHz", cfg.rate_hz), ("vmax", cfg.vmax), ("beta", cfg.beta),
+                            ("clfGain", cfg.clf_gain), ("radius", cfg.radius)):
+            set_param(cf, f"polycc.{name}", value)
+
+        def set_goal(w):
+            for axis, v in zip("XYZ", w):
+                set_param(cf, f"polycc.goal{axis}", float(v))
+
+        set_goal(targets[0])
+        # a session that streamed setpoints before leaves the CRTP priority, where HL commands are ignored
+        cf.commander.send_notify_setpoint_stop()
+        duration = max(1.0, float(start[2]) / TAKEOFF_SPEED)
+        cf.high_level_commander.takeoff(float(start[2]), duration)
+        ok = sitl.wait_until(lambda: abs(sitl.truth()[0][2] - start[2]) < 0.05, duration + 5.0)
+        if not ok:
+            p = sitl.truth()[0]
+            raise PolyccError(f"the high-level takeoff to {start[2]:.2f} m did not get there within "
+                              f"{duration + 5:.0f} s simulated (z = {p[2]:.2f} m); see {sitl.cf2_log}")
+        sitl.sleep(0.5)
+        self.say(f"took off to {start[2]:.2f} m; flying to {', '.join(f'{v:.2f}' for v in goal)}")
+        t0 = sitl.time()
+        n0 = len(samples)
+        set_param(cf, "polycc.enable", 1)
+        planned = float(np.sum(np.linalg.norm(np.diff(np.vstack([start, targets]), axis=0), axis=1)))
+        t_max = cfg.t_max_s if cfg.t_max_s is not None else 2.0 * planned / cfg.vmax + 10.0 + 4.0 * (len(targets) - 1)
+        outcome, current = "timeout", 0
+        hist: list[tuple[float, np.ndarray]] = []
+        last_wall, last_t = time.monotonic(), t0
+        while True:
+            s = sitl.state()
+            t, p = float(s["t"]) - t0, np.asarray(s["pos"])
+            hist.append((t, p))
+            if np.linalg.norm(p - goal) <= cfg.goal_tol_m:
+                outcome, current = "goal", len(targets)
+                break
+            while current < len(targets) - 1 and np.linalg.norm(p - targets[current]) <= cfg.switch_tol_m:
+                current += 1
+                set_goal(targets[current])
+            if t >= t_max:
+                break
+            if t > cfg.stuck_window_s:
+                old = next((q for tq, q in reversed(hist) if tq <= t - cfg.stuck_window_s), None)
+                if old is not None and np.linalg.norm(p - old) < cfg.stuck_dist_m:
+                    outcome = "stuck"
+                    break
+            if t > last_t:
+                last_wall, last_t = time.monotonic(), t
+            elif time.monotonic() - last_wall > 20.0:
+                sitl.check_alive()
+                raise PolyccError(f"the SITL simulation stopped advancing at t = {t:.2f} s")
+            time.sleep(SAMPLE_S)
+        t_end = sitl.time()
+        with lock:
+            flight = list(samples[n0:])
+        set_param(cf, "polycc.enable", 0)  # the app hands the vehicle to the high-level commander
+        self.say(f"{outcome} after {t_end - t0:.1f} s simulated; landing")
+        sitl.sleep(0.5)
+        z = float(sitl.truth()[0][2])
+        land_s = max(2.0, z / LAND_SPEED)
+        cf.high_level_commander.land(0.0, land_s)
+        landed = sitl.wait_until(lambda: sitl.state()["on_ground"] and not sitl.state()["motors_on"], land_s + 5.0)
+        lc.stop()
+        traj = sitl.trajectory()
+        sel = (traj[:, 0] >= t0) & (traj[:, 0] <= t_end + 1e-9)
+        P = traj[sel, 1:4]
+        if len(P) == 0:
+            P = np.asarray([start])
+        statuses: dict[int, int] = {}
+        est = []
+        for _, x, y, zz, st in flight:
+            statuses[int(st)] = statuses.get(int(st), 0) + 1
+            if None not in (x, y, zz):
+                est.append((x, y, zz))
+        params = cfg.params(self.kappa)
+        max_eval = int(cycle_model.us(cycle_model.state_cycles(self.packed, params, np.asarray(est))).max()) \
+            if est else 0
+        impacts = sitl.impacts()
+        trial = Trial(start, goal, outcome == "goal", outcome, t_end - t0,
+                      float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))), float(np.linalg.norm(goal - start)),
+                      P, max_eval, statuses, reached=current)
+        trial.impact_speed_ms = max((float(i["speed"]) for i in impacts), default=0.0)
+        extra = {"landed": bool(landed), "touchdown_ms": trial.impact_speed_ms,
+                 "start_actual": P[0].tolist(), "takeoff_s": duration}
+        return trial, extra

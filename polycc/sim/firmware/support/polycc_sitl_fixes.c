@@ -1,0 +1,69 @@
+/*
+ * polycc_sitl_fixes.c -- build-level work-arounds for bugs of the CrazySim SITL fork
+ * (llanesc/crazyflie-firmware sitl-release), compiled into cf2 by polycc/sim/firmware/build.py.
+ * No firmware source is copied or edited; build.py only adds this file and, for the
+ * affected firmware file, a -D that renames one call.
+ *
+ * stabilizer-delay-until
+ *   src/modules/src/stabilizer.c:278 declares `uint32_t lastWakeTime;` and passes its address
+ *   to vTaskDelayUntil(TickType_t *, TickType_t) (stabilizer.c:289).  On the FreeRTOS POSIX
+ *   port TickType_t is `unsigned long`, 64 bits (portable/ThirdParty/GCC/Posix/portmacro.h:62),
+ *   so vTaskDelayUntil reads and writes 8 bytes: the low half is lastWakeTime, the high half
+ *   an uninitialised stack slot.  When that slot is not zero the wake time is >= 2^32, the
+ *   "tick count overflowed" branch of vTaskDelayUntil (tasks.c) never delays, and the
+ *   priority-5 stabilizer task spins in its "Wait for sensor calibration" loop forever,
+ *   starving every lower-priority task (CRTP RX, sensors, param, log, app): cf2 boots, prints
+ *   "Wait for sensor calibration...", and never answers.  On the real Crazyflie TickType_t is
+ *   uint32_t (portable/GCC/ARM_CM4F/portmacro.h:63) and the code is correct.
+ *
+ *   build.py compiles stabilizer.c with -DvTaskDelayUntil=polycc_sitl_vTaskDelayUntil_u32;
+ *   this function takes the 32-bit variable the caller really passes.
+ */
+#include <stdint.h>
+
+#include "FreeRTOS.h"
+#include "task.h"
+
+void polycc_sitl_vTaskDelayUntil_u32(uint32_t *pxPreviousWakeTime, TickType_t xTimeIncrement);
+
+void polycc_sitl_vTaskDelayUntil_u32(uint32_t *pxPreviousWakeTime, TickType_t xTimeIncrement)
+{
+    TickType_t t = (TickType_t)*pxPreviousWakeTime;
+    vTaskDelayUntil(&t, xTimeIncrement);
+    *pxPreviousWakeTime = (uint32_t)t;
+}
+
+/*
+ * debug-rx-drops (diagnostic, off by default)
+ *   build.py compiles src/hal/src/socketlink.c with
+ *   -DxQueueGenericSend=polycc_sitl_dbg_xQueueGenericSend, so the reader task's
+ *   xQueueSend(crtpPacketDelivery, &p, 0) (socketlink.c:95) comes here: every packet the
+ *   firmware drops because its 5-deep RX queue is full is printed with the CLOCK_MONOTONIC
+ *   time (comparable with Python's time.monotonic()), the tick count and the CRTP header.
+ */
+#include <stdio.h>
+#include <time.h>
+
+#include "queue.h"
+
+BaseType_t polycc_sitl_dbg_xQueueGenericSend(QueueHandle_t xQueue, const void * const pvItemToQueue,
+                                             TickType_t xTicksToWait, const BaseType_t xCopyPosition);
+
+BaseType_t polycc_sitl_dbg_xQueueGenericSend(QueueHandle_t xQueue, const void * const pvItemToQueue,
+                                             TickType_t xTicksToWait, const BaseType_t xCopyPosition)
+{
+    static unsigned long drops, sent;
+    BaseType_t r = xQueueGenericSend(xQueue, pvItemToQueue, xTicksToWait, xCopyPosition);
+    if (r != pdTRUE) {
+        struct timespec ts;
+        const uint8_t *pk = (const uint8_t *)pvItemToQueue; /* CRTPPacket: size, then header */
+        clock_gettime(CLOCK_MONOTONIC, &ts);
+        ++drops;
+        printf("RXDROP t=%ld.%06ld tick=%lu hdr=0x%02x b1=0x%02x size=%u drops=%lu of %lu\n",
+               (long)ts.tv_sec, ts.tv_nsec / 1000L, (unsigned long)xTaskGetTickCount(), pk[1], pk[2],
+               (unsigned)pk[0], drops, drops + sent);
+    } else {
+        ++sent;
+    }
+    return r;
+}

@@ -1,0 +1,315 @@
+"""The real Crazyflie firmware in the loop: CrazySim SITL ``cf2`` with the polycc app and a demo-arena
+header compiled in (:mod:`polycc.sim.firmware`), flown with real cflib.
+
+* the issue-14 scenarios (a)-(g) (:mod:`polycc.testing.flight_scenarios`) on the real firmware, with
+  the same assertions as the fast sim (tests/sim/test_flight_behaviour.py) where the firmware agrees;
+* unmodified cflib scripts: the README example, MotionCommander, PositionHlCommander, SyncLogger;
+* `polycc sim DIR --firmware FWDIR` (several trials through the arena);
+* the differential test: the same scenario on the fast shims and on the real firmware, position RMS
+  after the enable within the bound measured here (:data:`DIFF_RMS_M`).
+
+One cf2 build for the module (cached by content hash across runs); each flight boots its own SITL (3 s)
+so scenarios cannot leak state into each other. Everything waits in simulated time (lock-stepped), so a
+loaded host only makes it slower. Needs cmake, a host C compiler and the SITL tarball
+(``../shared/firmware/``, or POLYCC_SHARED_FIRMWARE).
+"""
+
+from __future__ import annotations
+
+import builtins
+import json
+import math
+import os
+import re
+import shutil
+import types
+
+import numpy as np
+import pytest
+
+from polycc.testing import flight_scenarios as fs
+from polycc.testing.files import sitl_tarball
+
+pytest.importorskip("cflib")
+pytestmark = pytest.mark.skipif(shutil.which("cmake") is None and not os.environ.get("CI"),
+                                reason="cmake not installed (.ci/run installs it)")
+
+# RMS of the 3-D position difference, fast shims vs real firmware, while the app flies the full flight
+# (flight_scenarios.diff_rms). Measured on the demo arena: 14.7 cm before the fast model got the
+# effective drag calibrated on this firmware (dynamics.CrazyflieParams.drag_xy), 2.1, 3.4 and 4.2 cm in three
+# runs after (x 0.5 cm, z 2.0 cm in the first: the real vehicle sags 2-3 cm while cruising). The real run is not
+# deterministic (cflib's commands reach the lock-stepped firmware at host-timed instants), so the bound
+# leaves 2 cm over the worst run seen, above the issue's 5 cm target.
+DIFF_RMS_M = 0.06
+
+
+@pytest.fixture(scope="module")
+def arena(tmp_path_factory):
+    from polycc.cli import main
+
+    tree = sitl_tarball()
+    if not tree.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"{tree}: SITL firmware tarball not found; CI needs ../shared/firmware beside the clone")
+        pytest.skip(f"{tree}: SITL firmware tarball not found (set POLYCC_SHARED_FIRMWARE)")
+    d = tmp_path_factory.mktemp("fwarena")
+    assert main(["demo-scene", str(d / "arena.ply")]) == 0
+    assert main(["build", str(d / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(d / "b")]) == 0
+    side = json.loads((d / "arena.json").read_text())
+    start = list(side["start"])
+    from polycc.sim.firmware.build import build_cf2
+
+    build = build_cf2(tree, d / "b" / "polytopes.h")
+    assert build.app_warnings == []  # the app compiles without a warning in the SITL too
+    return {"dir": d / "b", "start": [start[0], start[1], 0.0], "goal": list(side["goal"]), "build": build,
+            "tree": tree, "scene": d / "arena.ply"}
+
+
+def world(arena):
+    from polycc.testing.worlds import FirmwareWorld
+
+    return FirmwareWorld(arena["dir"] / "polytopes.h", arena["start"], cf2=arena["build"])
+
+
+_runs: dict = {}
+
+
+def run(arena, scenario):
+    """Each scenario once per module (the differential test reuses the firmware's full flight)."""
+    if scenario not in _runs:
+        with world(arena) as w:
+            _runs[scenario] = fs.SCENARIOS[scenario](w.uri, w, arena)
+    return _runs[scenario]
+
+
+# --------------------------------------------------------------------------- the issue-14 scenarios
+@pytest.mark.slow
+def test_full_flight_hand_over_and_land(arena):
+    r = run(arena, "full_flight")
+    assert r["took_off"] and r["arrived"]
+    assert r["hold_dz_max"] < 0.05  # disabled in the air: the hand-over holds z within 5 cm for 3 s
+    assert r["landed"] and not r["motors_on_end"]
+
+
+@pytest.mark.slow
+def test_enabled_on_the_floor_keeps_the_motors_off(arena):
+    r = run(arena, "enabled_on_floor")
+    assert not r["motors_on_any"] and r["z_max"] < 0.01
+    assert r["status"] == 7
+
+
+@pytest.mark.slow
+def test_disable_at_speed_stops_and_holds(arena):
+    r = run(arena, "disable_at_speed")
+    assert r["took_off"] and r["speed_at_disable"] > 0.4
+    assert r["speed_end"] < 0.05 and r["travel_after_disable"] < 0.3 and r["motors_on_end"]
+    assert r["z_min_after"] > 0.6  # no drop
+
+
+@pytest.mark.slow
+def test_link_loss_lands(arena):
+    r = run(arena, "link_loss")
+    assert r["status_before_cut"] == 1
+    assert r["landed"] and not r["motors_on_end"] and r["max_descent_speed"] < 1.0
+    assert r["status_after"] == 10
+
+
+@pytest.mark.slow
+def test_unsupported_controller_is_refused(arena):
+    r = run(arena, "unsupported_controller")
+    assert r["status"] == 9 and r["moved"] < 0.05
+
+
+@pytest.mark.slow
+def test_ground_setpoints_are_ignored_while_enabled(arena):
+    r = run(arena, "ground_setpoints_while_enabled")
+    assert r["arrived"] and r["z_min_flight"] > 0.5
+
+
+@pytest.mark.slow
+def test_polycc_fly_from_the_floor(arena):
+    r = run(arena, "polycc_fly_from_floor")
+    assert r["outcome"] == "landed", r["events"]
+    assert r["max_descent_speed"] < 1.0 and not r["motors_on_end"]
+
+
+# --------------------------------------------------------------------------- unmodified cflib scripts
+def _sim_time(w):
+    """A ``time`` module whose clock is the SITL's simulated time (it may run slower than real time on a
+    loaded host; on a real Crazyflie the two are the same): for scripts and cflib helpers that time
+    their steps with ``time.sleep`` (MotionCommander's moves and land, PositionHlCommander's waits)."""
+    return types.SimpleNamespace(sleep=w.sleep, time=w.time, monotonic=w.time, perf_counter=w.time)
+
+
+def _sim_time_import(w):
+    """``__import__`` for an exec'd user script whose ``import time`` gets :func:`_sim_time`."""
+    real = builtins.__import__
+    fake = _sim_time(w)
+
+    def imp(name, *a, **k):
+        return fake if name == "time" else real(name, *a, **k)
+    return imp
+
+
+@pytest.mark.slow
+def test_readme_cflib_example_on_the_real_firmware(arena):
+    from polycc.testing.files import CHECKOUT
+
+    text = (CHECKOUT / "README.md").read_text()
+    code = re.search(r"<!-- readme-cflib-example -->\n```python\n(.*?)```", text, re.S).group(1)
+    goal = np.array([float(v) for v in re.search(r'\("goalX", ([-\d.]+)\), \("goalY", ([-\d.]+)\), '
+                                                 r'\("goalZ", ([-\d.]+)\)', code).groups()])
+    with world(arena) as w:
+        with fs.Recorder(w, {}) as rec:
+            g = {"__builtins__": dict(vars(builtins), __import__=_sim_time_import(w))}
+            exec(compile(code.replace("udp://127.0.0.1:19850", w.uri), "README.md", "exec"), g)
+            w.sleep(1.0)
+        a = rec.array()
+        p, v, on = w.truth()
+    xyz = a[:, 1:4]
+    assert xyz[:, 2].max() > 0.8
+    assert np.linalg.norm(xyz - goal, axis=1).min() < 0.15
+    assert p[2] < 0.03 and not on  # landed, motors off
+    assert a[:, 4].min() > -1.0  # no drop
+
+
+def _connect(w):
+    return fs._connect(w.uri, w)
+
+
+@pytest.mark.slow
+def test_motion_commander_and_sync_logger(arena, monkeypatch):
+    from cflib.crazyflie.log import LogConfig
+    from cflib.crazyflie.syncLogger import SyncLogger
+    from cflib.positioning import motion_commander
+    from cflib.positioning.motion_commander import MotionCommander
+
+    from polycc.link.cflib_tools import close_without_stop
+
+    with world(arena) as w:
+        monkeypatch.setattr(motion_commander, "time", _sim_time(w))
+        scf = _connect(w)
+        try:
+            lc = LogConfig(name="pos", period_in_ms=50)
+            for n in ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z"):
+                lc.add_variable(n, "float")
+            rows = []
+            with SyncLogger(scf, lc) as logger:
+                for entry in logger:
+                    rows.append(entry[1])
+                    if len(rows) >= 10:
+                        break
+            assert len(rows) == 10 and all(abs(r["stateEstimate.z"]) < 0.05 for r in rows)
+            p0 = w.truth()[0].copy()
+            scf.cf.commander.send_notify_setpoint_stop()
+            mc = MotionCommander(scf, default_height=0.6)
+            mc.take_off(0.6, 0.3)
+            z_up = w.truth()[0][2]
+            mc.forward(0.5, 0.25)
+            p1 = w.truth()[0].copy()
+            mc.land(0.3)
+            p_end, _, on = w.truth()
+            assert w.wait_until(lambda: not w.truth()[2], 5.0)  # motors stop on the floor (MC sends stop)
+            touchdown = max((float(i["speed"]) for i in w.sitl.impacts()), default=0.0)
+        finally:
+            close_without_stop(scf)
+    assert z_up > 0.4
+    assert p1[0] - p0[0] > 0.2  # forward = +x in the world frame (yaw 0)
+    # cflib's MotionCommander.land descends for height/velocity seconds and then sends stop: the real PID
+    # lags the velocity command, so the motors stop ~0.15 m up (measured 0.15 m) and it drops the rest
+    # (cflib's behaviour, the same on hardware; the polycc examples land with the high-level commander)
+    assert p_end[2] < 0.2 and touchdown < 2.5 and touchdown < 1.0
+
+
+@pytest.mark.slow
+def test_position_hl_commander(arena, monkeypatch):
+    from cflib.positioning import position_hl_commander
+    from cflib.positioning.position_hl_commander import PositionHlCommander
+
+    from polycc.link.cflib_tools import close_without_stop
+
+    with world(arena) as w:
+        monkeypatch.setattr(position_hl_commander, "time", _sim_time(w))
+        scf = _connect(w)
+        x0, y0 = arena["start"][0], arena["start"][1]
+        try:
+            scf.cf.commander.send_notify_setpoint_stop()
+            with PositionHlCommander(scf, x=x0, y=y0, z=0.0, default_velocity=0.4, default_height=0.7,
+                                     controller=PositionHlCommander.CONTROLLER_PID) as pc:
+                pc.go_to(x0 + 0.4, y0, 0.7)
+                w.sleep(1.0)
+                p_goto = w.truth()[0].copy()
+            p_end = w.truth()[0].copy()  # leaving the with landed (its land waits the landing's duration)
+            touchdown = max((float(i["speed"]) for i in w.sitl.impacts()), default=0.0)
+        finally:
+            close_without_stop(scf)
+    assert math.dist(p_goto, (x0 + 0.4, y0, 0.7)) < 0.1
+    # PositionHlCommander.land waits the landing's duration and then stops: measured 0.11 m up (PID lag)
+    assert p_end[2] < 0.2 and touchdown < 2.5
+
+
+# --------------------------------------------------------------------------- polycc sim --firmware
+@pytest.mark.slow
+def test_polycc_sim_firmware_trials(arena, tmp_path, capsys):
+    from polycc.cli import main
+
+    out = arena["dir"]
+    assert main(["sim", str(out), "--scene", str(arena["scene"]), "--firmware", str(arena["tree"]),
+                 "--trials", "3", "--jitter", "0.2"]) == 0
+    text = capsys.readouterr().out
+    assert "collisions: 0" in text and "success 3/3" in text, text[-2000:]
+    assert (out / "trajectories.png").is_file() and (out / "trajectories.npz").is_file()
+
+
+# --------------------------------------------------------------------------- fast vs real
+@pytest.mark.slow
+def test_fast_shims_agree_with_the_real_firmware(arena):
+    from polycc.testing.worlds import FastWorld
+
+    real = run(arena, "full_flight")
+    with FastWorld(arena["dir"] / "polytopes.h", arena["start"]) as w:
+        fast = fs.SCENARIOS["full_flight"](w.uri, w, arena)
+    rms = fs.diff_rms(fast, real)
+    print(f"full_flight: fast vs real firmware RMS {rms * 100:.1f} cm while the app flies")
+    assert rms <= DIFF_RMS_M
+
+
+# --------------------------------------------------------------------------- polycc sim-device --firmware
+@pytest.mark.slow
+def test_sim_device_firmware_serves_cflib_and_stops_on_ctrl_c(arena):
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from polycc.link.cflib_tools import close_without_stop, connect
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cmd = [sys.executable, "-m", "polycc", "sim-device", str(arena["dir"]), "--firmware", str(arena["tree"]),
+           "--udp", f"127.0.0.1:{port}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines = []
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("URI: "):
+                break
+        uri = lines[-1].split()[1]
+        assert uri == f"udp://127.0.0.1:{port}", "".join(lines)
+        scf = connect(uri, 90.0)
+        try:
+            toc = scf.cf.param.toc
+            assert toc.get_element_by_complete_name("polycc.enable") is not None
+            assert toc.get_element_by_complete_name("kalman.resetEstimation") is not None  # the real firmware's TOC
+            assert int(scf.cf.param.get_value("polycc.enable")) == 0
+        finally:
+            close_without_stop(scf)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, "".join(lines) + rest
+    assert "ports freed" in rest
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", port))  # freed
