@@ -27,6 +27,13 @@
 #include <stdint.h>
 #include <string.h>
 
+/* The firmware's Kconfig symbols (CONFIG_CONTROLLER_OOT) before controller.h reads them: the
+ * firmware force-includes nothing for an out-of-tree app, and debug.h pulls autoconf.h in too late. */
+#if defined(__has_include)
+#if __has_include("autoconf.h")
+#include "autoconf.h"
+#endif
+#endif
 #include "app.h"
 #include "app_channel.h"
 #include "commander.h"
