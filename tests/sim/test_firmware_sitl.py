@@ -276,17 +276,16 @@ def test_fast_shims_agree_with_the_real_firmware(arena):
 
 # --------------------------------------------------------------------------- polycc sim-device --firmware
 @pytest.mark.slow
-def test_sim_device_firmware_serves_cflib_and_stops_on_ctrl_c(arena):
+def test_sim_device_firmware_serves_cflib_and_cfclient_and_stops_on_ctrl_c(arena, tmp_path):
     import signal
     import socket
     import subprocess
     import sys
 
     from polycc.link.cflib_tools import close_without_stop, connect
+    from polycc.testing.cfclient_connect import free_scan_port, run_cfclient
 
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_scan_port()  # cfclient's scan only looks at 19850..19859
     cmd = [sys.executable, "-m", "polycc", "sim-device", str(arena["dir"]), "--firmware", str(arena["tree"]),
            "--udp", f"127.0.0.1:{port}"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -306,6 +305,13 @@ def test_sim_device_firmware_serves_cflib_and_stops_on_ctrl_c(arena):
             assert int(scf.cf.param.get_value("polycc.enable")) == 0
         finally:
             close_without_stop(scf)
+        # cfclient as a user runs it: scan, pick the URI, Connect; its tabs run on the firmware's full TOC.
+        # The SITL fork builds no power management (pm_stm32f4.c), so there is no pm.vbat for cfclient's
+        # battery log (it warns and goes on, as it would on such a firmware); its other tabs must run cleanly.
+        res = run_cfclient(uri, tmp_path, seconds=8.0)
+        assert res["connected"] and res["still_connected"], json.dumps(res)
+        assert res["errors"] == [], "\n".join(res["errors"])
+        assert res["params"] >= 20 and (res["battery_v"] is not None or not res["has_vbat"]), json.dumps(res)
     finally:
         proc.send_signal(signal.SIGINT)
         rest, _ = proc.communicate(timeout=60)

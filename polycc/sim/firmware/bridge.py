@@ -90,6 +90,7 @@ from polycc.sim.firmware import physics
 from polycc.sim.firmware.arq import Arq
 
 IMU_PERIOD_S = 0.001
+SCAN_PROBE = b"\xff"        # cflib udpdriver.scan_interface: one null CRTP packet
 IMU_MIN_SPACING_S = 0.0005  # never two IMU packets closer than this (no catch-up bursts)
 MAX_LATE_S = 0.003          # later than this: re-anchor the IMU slot schedule
 MAX_CATCHUP_STEPS = 200     # wall mode: physics steps done at once after the bridge was late (0.2 s)
@@ -283,6 +284,14 @@ class Bridge:
 
     # ------------------------------------------------------------------ cflib side
     def _handle_cf(self, data: bytes, addr, now: float):
+        if data == SCAN_PROBE:
+            # cflib's UDP scan (cfclient's Scan button) sends one null CRTP packet from a throw-away
+            # socket and waits 0.1 s for any reply. On a radio the nRF link layer ACKs it without the
+            # STM32; the bridge plays that link, so it answers at once, and the prober's address must
+            # not take over the client's (the firmware's replies would go to a closed socket).
+            self.cf.sendto(SCAN_PROBE, addr)
+            self.stats["scan_probes"] += 1
+            return
         if addr != self.cf_addr:
             self.cf_addr = addr
             self.emit("cflib_client", addr=list(addr))

@@ -67,3 +67,34 @@ BaseType_t polycc_sitl_dbg_xQueueGenericSend(QueueHandle_t xQueue, const void * 
     }
     return r;
 }
+
+/*
+ * deck-params
+ *   The fork's sitl_make/CMakeLists.txt leaves the deck subsystem out (deck/core and every driver
+ *   are commented out), so its param TOC has no `deck` group at all.  On a real Crazyflie each deck
+ *   driver registers its presence flag (e.g. src/deck/drivers/src/zranger.c: PARAM_ADD_CORE(
+ *   PARAM_UINT8 | PARAM_RONLY, bcZRanger, &isInit)), 0 when that deck is not attached; cfclient's
+ *   flight, lighthouse and LED-ring tabs read them on connect and raise KeyError without the group.
+ *   build.py compiles this file with -DPOLYCC_SITL_DECK_PARAMS: the same read-only flags, all 0,
+ *   as on a Crazyflie with no deck (the SITL has no deck bus).
+ */
+#ifdef POLYCC_SITL_DECK_PARAMS
+#include "param.h"
+
+static uint8_t polycc_sitl_no_deck;
+
+PARAM_GROUP_START(deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcFlow, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcFlow2, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcZRanger, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcZRanger2, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcMultiranger, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcLighthouse4, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcLoco, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcDWM1000, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcAI, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcLedRing, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcUSD, &polycc_sitl_no_deck)
+PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcBuzzer, &polycc_sitl_no_deck)
+PARAM_GROUP_STOP(deck)
+#endif
