@@ -375,7 +375,7 @@ static void serviceAppChannel(void)
     size_t n;
     while ((n = appchannelReceiveDataPacket(rx, sizeof rx, 0)) > 0u) {
         float x[3];
-        size_t echo = n > APPCHANNEL_MTU - POLYCC_APP_REPLY_BYTES ? APPCHANNEL_MTU - POLYCC_APP_REPLY_BYTES : n;
+        size_t echo = n > POLYCC_APP_TX_MAX - POLYCC_APP_REPLY_BYTES ? POLYCC_APP_TX_MAX - POLYCC_APP_REPLY_BYTES : n;
         heartbeatSeen = true;
         lastHeartbeat = xTaskGetTickCount();
         readVector(idX, idY, idZ, haveEstimate, x);

@@ -132,6 +132,11 @@
  * bytes of the request as an echo): status (uint8), enable (uint8), psi (float, m), x, y, z
  * (float, m, the estimate). */
 #define POLYCC_APP_REPLY_BYTES 18u
+/* Largest packet the app sends: the CRTP payload, CRTP_MAX_DATA_SIZE = 30 bytes. Firmware of 2024 (the
+ * CrazySim SITL fork among it) defines APPCHANNEL_MTU as 31 while crtpSendPacketBlock() asserts
+ * size <= 30, and assertFail() stops the motors and resets the Crazyflie: a 31-byte reply (18 + a
+ * 13-byte echo of an 18-byte neighbour report) dropped the drone. Never size a packet by APPCHANNEL_MTU. */
+#define POLYCC_APP_TX_MAX 30u
 
 /* ---- for the shield (polycc_controller.c): the scene this app was built with ---- */
 const polycc_scene_t *polycc_app_scene(void);

@@ -105,3 +105,20 @@ def test_silent_neighbour_holds_position(app):
     _push(app, pack_forget(3))  # the ground drops it (landed): no hold when it goes silent
     run(t + 700)
     assert app.get_log("polycc", "nNbr") == 0 and app.get_log("polycc", "status") == 1
+
+
+@pytest.mark.parametrize("size", [2, 18, 30, 31])
+def test_no_reply_exceeds_the_crtp_payload(app, size):
+    """Regression: the reply to an 18-byte neighbour report was 18 + 13 = 31 bytes, sized by APPCHANNEL_MTU,
+    which is 31 in the CrazySim fork and the firmware of its time; crtpSendPacketBlock() ASSERTs size <= 30
+    and assertFail() stops the motors. Found flying `polycc swarm-sim --firmware`: every drone's firmware
+    froze in the air. The shim models that firmware (MTU 31) and its assert (motors off)."""
+    x = np.array([2.0, 2.0, 1.0], np.float32)
+    _start(app, x)
+    data = pack_neighbour(3, [2.6, 2.3, 1.0], 20, 0.1) if size == 18 else bytes(range(1, size + 1))
+    _push(app, data)
+    app.tick(0)
+    buf = app.ffi.new("unsigned char[64]")
+    n = app.lib.shim_appchannel_pop(buf, 64)
+    assert 18 <= n <= 30 and app.lib.shim_crtp_asserts() == 0
+    assert bytes(buf[18:n]) == data[: n - 18]  # the echo: the first bytes of the request

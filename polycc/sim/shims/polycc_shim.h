@@ -113,6 +113,8 @@ void shim_set_connected(int is_connected);
 /* App channel: packets from the ground (push) and the app's replies (pop); 0 when empty. */
 int shim_appchannel_push(const void *data, size_t length);
 size_t shim_appchannel_pop(void *buffer, size_t max_length);
+/* App-channel sends longer than the CRTP payload (30 bytes): the firmware ASSERTs (motors off, reset). */
+int shim_crtp_asserts(void);
 
 /* Attitude and thrust of the simulated vehicle (log stateEstimate.roll/pitch/yaw, stabilizer.*). */
 void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thrust);

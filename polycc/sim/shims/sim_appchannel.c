@@ -15,11 +15,13 @@ typedef struct {
 static packet_t rxq[QUEUE], txq[QUEUE];
 static int rxHead, rxCount, txHead, txCount;
 static bool overflow;
+static int crtpAsserts; /* sends the firmware would have ASSERTed on (appchannelSendDataPacket) */
 
 void shimAppchannelReset(void)
 {
     rxHead = rxCount = txHead = txCount = 0;
     overflow = false;
+    crtpAsserts = 0;
 }
 
 static int push(packet_t *q, int *head, int *count, const void *data, size_t length)
@@ -70,8 +72,22 @@ size_t appchannelReceiveDataPacket(void *buffer, size_t max_length, int timeout_
     return pop(rxq, &rxHead, &rxCount, buffer, max_length);
 }
 
+/* The firmware's app channel clips to APPCHANNEL_MTU and hands the packet to crtpSendPacket(), which
+ * ASSERTs size <= CRTP_MAX_DATA_SIZE; assertFail() stops the motors and resets the Crazyflie. The shim
+ * counts such sends (shim_crtp_asserts) and cuts the motors as the firmware would. */
+int shim_crtp_asserts(void)
+{
+    return crtpAsserts;
+}
+
 int appchannelSendDataPacket(void *data, size_t length)
 {
+    size_t sent = length > APPCHANNEL_MTU ? APPCHANNEL_MTU : length;
+    if (sent > SHIM_CRTP_MAX_DATA_SIZE) {
+        ++crtpAsserts;
+        shimAssertFailed();
+        return 0;
+    }
     return push(txq, &txHead, &txCount, data, length) == 0 ? 1 : 0;
 }
 

@@ -286,9 +286,18 @@ static int hlGetSetpoint(setpoint_t *sp, const state_t *state)
     return 1;
 }
 
+/* A firmware ASSERT (assertFail): motors stopped for good (the Crazyflie resets). */
+static int asserted;
+
+void shimAssertFailed(void)
+{
+    asserted = 1;
+}
+
 /* ---------------------------------------------------------------- commander */
 void shimCommanderReset(void)
 {
+    asserted = 0;
     memset(&rec, 0, sizeof rec);
     pidSetpoint = nullSetpoint;
     pidCalls = 0u;
@@ -454,7 +463,7 @@ void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg,
     }
     commanderGetSetpoint(&sp, &state);
     age = tick - sp.timestamp;
-    if (locked || crashed || tumbled || age > WDT_SHUTDOWN_TICKS) {
+    if (asserted || locked || crashed || tumbled || age > WDT_SHUTDOWN_TICKS) {
         sp = nullSetpoint;
     } else if (age > WDT_STABILIZE_TICKS) {
         sp.mode.x = modeDisable;
