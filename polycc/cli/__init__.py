@@ -29,6 +29,7 @@ COMMAND_MODULES = [
     "sim",
     "sim_device",
     "swarm_sim",
+    "swarm_fly",
     "fly",
     "flash",
 ]

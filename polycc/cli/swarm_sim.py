@@ -37,6 +37,40 @@ def register(subparsers) -> None:
     p.add_argument("out", metavar="DIR", help="build folder with polytopes.h and manifest.json (from `polycc build`)")
     p.add_argument("--drones", type=number(int, 1, 16), default=4, metavar="N",
                    help="number of drones, 1..16 (the app's neighbour table holds 16) (default: %(default)s)")
+    add_coverage_options(p)
+    p.add_argument("--t-max", type=number(float, 0.0, 3600.0, lo_open=True, unit="s"), default=60.0, metavar="S",
+                   help="simulated time limit, s (default: %(default)s)")
+    p.add_argument("--vmax", type=number(float, 0.0, 5.0, lo_open=True, unit="m/s"), default=0.5, metavar="V",
+                   help="each app's polycc.vmax, m/s (default: %(default)s)")
+    p.add_argument("--swarm-v", type=number(float, 0.0, 100.0, unit="m/s"), default=1.0, metavar="V",
+                   help="polycc.swarmV: the neighbours' speed bound used by the ageing buffer, m/s (default: "
+                        "%(default)s)")
+    p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=500, metavar="HZ",
+                   help="requested app loop rate, Hz (default: %(default)s)")
+    p.add_argument("--bcast-hz", type=number(int, 1, 200, unit="Hz"), default=20, metavar="HZ",
+                   help="neighbour report rate per drone, Hz (default: %(default)s)")
+    p.add_argument("--latency-ms", type=number(int, 0, 400, unit="ms"), default=10, metavar="MS",
+                   help="report delivery latency, ms (stated in the report's age) (default: %(default)s)")
+    p.add_argument("--dynamics", choices=("integrator", "crazyflie", "quadrotor"), default="integrator",
+                   help="vehicle model of every drone (as `polycc sim`) (default: %(default)s)")
+    p.add_argument("--scene", metavar="SCENE",
+                   help="the splat scene as ground truth; default: the path stored in DIR/manifest.json")
+    p.add_argument("--plot", metavar="FILE.png", help="coverage plot (default: DIR/coverage.png)")
+    p.add_argument("--firmware", metavar="FWDIR",
+                   help="fly N REAL Crazyflie firmwares instead: FWDIR is the CrazySim SITL tree or its .tar.xz (as "
+                        "`polycc sim --firmware`). Builds one cf2 with the app and DIR/polytopes.h (cached), runs N "
+                        "SITL instances (each starting on the floor below a free takeoff column) and flies them with "
+                        "real cflib exactly as `polycc swarm-fly` flies real drones: high-level takeoff to --takeoff, "
+                        "neighbours relayed over the app channel, the coverage controllers on the ground, HL landing. "
+                        "Slower than real time with several instances on few cores; --dynamics does not apply")
+    p.add_argument("--takeoff", type=number(float, 0.3, 3.0, unit="m"), default=0.9, metavar="Z",
+                   help="with --firmware: the common takeoff height, m (default: %(default)s)")
+    add_scene_options(p, from_dir=True)
+    p.set_defaults(func=run)
+
+
+def add_coverage_options(p) -> None:
+    """The coverage task's options, shared by `swarm-sim` and `swarm-fly`."""
     t = p.add_mutually_exclusive_group()
     t.add_argument("--targets", metavar="FILE.json",
                    help='targets of interest: {"targets": [{"x": m, "y": m, "z": m, "sigma": m, "weight": w}, ...]}')
@@ -47,32 +81,30 @@ def register(subparsers) -> None:
                         "with BVC, no guided map) or repulsive (attraction + neighbour repulsion) (default: "
                         "%(default)s)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random starts and targets (default: %(default)s)")
-    p.add_argument("--t-max", type=number(float, 0.0, 3600.0, lo_open=True, unit="s"), default=60.0, metavar="S",
-                   help="simulated time limit, s (default: %(default)s)")
-    p.add_argument("--vmax", type=number(float, 0.0, 5.0, lo_open=True, unit="m/s"), default=0.5, metavar="V",
-                   help="each app's polycc.vmax, m/s (default: %(default)s)")
     p.add_argument("--radius", type=number(float, 0.0, 1.0, unit="m"), default=0.1, metavar="R",
                    help="agent radius, m: each app's polycc.radius and the physical radius (default: %(default)s)")
-    p.add_argument("--swarm-v", type=number(float, 0.0, 100.0, unit="m/s"), default=1.0, metavar="V",
-                   help="polycc.swarmV: the neighbours' speed bound used by the ageing buffer, m/s (default: "
-                        "%(default)s)")
-    p.add_argument("--rate-hz", type=number(int, 10, 1000, unit="Hz"), default=500, metavar="HZ",
-                   help="requested app loop rate, Hz (default: %(default)s)")
-    p.add_argument("--bcast-hz", type=number(int, 1, 200, unit="Hz"), default=20, metavar="HZ",
-                   help="neighbour report rate per drone, Hz (default: %(default)s)")
-    p.add_argument("--latency-ms", type=number(int, 0, 400, unit="ms"), default=10, metavar="MS",
-                   help="report delivery latency, ms (stated in the report's age) (default: %(default)s)")
     p.add_argument("--sense", type=number(float, 0.0, 10.0, lo_open=True, unit="m"), default=0.5, metavar="M",
                    help="a peak is detected when a drone comes this close, m (default: %(default)s)")
     p.add_argument("--grid", type=number(float, 0.05, 1.0, unit="m"), default=0.15, metavar="G",
                    help="coverage grid spacing, m (certified free cells, polycc plan's grid) (default: %(default)s)")
-    p.add_argument("--dynamics", choices=("integrator", "crazyflie", "quadrotor"), default="integrator",
-                   help="vehicle model of every drone (as `polycc sim`) (default: %(default)s)")
-    p.add_argument("--scene", metavar="SCENE",
-                   help="the splat scene as ground truth; default: the path stored in DIR/manifest.json")
-    p.add_argument("--plot", metavar="FILE.png", help="coverage plot (default: DIR/coverage.png)")
-    add_scene_options(p, from_dir=True)
-    p.set_defaults(func=run)
+
+
+def coverage_setup(args, out: Path):
+    """(NavMap, CoverageMap, Targets, free-cell centres (M, 3) m, rng) for the build ``out`` and the coverage
+    options."""
+    from polycc.cli.console import console
+    from polycc.plan.planner import NavMap
+    from polycc.swarm.coverage import CoverageMap, load_targets
+    from polycc.swarm.scenario import random_targets
+
+    with console.status("certifying the free space on the coverage grid"):
+        nav = NavMap.from_build(out, radius=args.radius, margin=0.05, spacing=args.grid)
+    rng = np.random.default_rng(args.seed)
+    centres = nav.grid.centres(np.argwhere(nav._free.astype(bool)))
+    if len(centres) < 2:
+        raise PolyccError(f"{out}: fewer than 2 certified free cells at --grid {args.grid:g} m; use a finer grid")
+    targets = load_targets(args.targets) if args.targets else random_targets(centres, args.random_targets or 3, rng)
+    return nav, CoverageMap(nav, targets), targets, centres, rng
 
 
 def run(args) -> int:
@@ -81,11 +113,9 @@ def run(args) -> int:
     from polycc.cli.console import console, progress_bar
     from polycc.cli.sim import _scene_path
     from polycc.onboard.app import STATUS_NAMES
-    from polycc.plan.planner import NavMap
     from polycc.sim.clearance import Clearance
-    from polycc.swarm.coverage import CoverageMap, load_targets
     from polycc.swarm.plot import plot_coverage
-    from polycc.swarm.scenario import random_targets, spread_points
+    from polycc.swarm.scenario import spread_points
     from polycc.swarm.sim import SwarmConfig, run_swarm
 
     out = Path(args.out)
@@ -95,27 +125,36 @@ def run(args) -> int:
     t0 = time.perf_counter()
     scene_path = _scene_path(args, out)
     scene = load_scene_from_args(scene_path, args)
-    with console.status("certifying the free space on the coverage grid"):
-        nav = NavMap.from_build(out, radius=args.radius, margin=0.05, spacing=args.grid)
-    rng = np.random.default_rng(args.seed)
-    centres = nav.grid.centres(np.argwhere(nav._free.astype(bool)))
-    if len(centres) < 2:
-        raise PolyccError(f"{out}: fewer than 2 certified free cells at --grid {args.grid:g} m; use a finer grid")
-    targets = load_targets(args.targets) if args.targets else random_targets(centres, args.random_targets or 3, rng)
-    cmap = CoverageMap(nav, targets)
-    starts = spread_points(centres, args.drones, 0.6, rng)
+    nav, cmap, targets, centres, rng = coverage_setup(args, out)
+    if args.firmware:
+        from polycc.swarm.firmware import column_starts
+
+        starts = column_starts(cmap, args.drones, args.takeoff, 0.8, rng)
+    else:
+        starts = spread_points(centres, args.drones, 0.6, rng)
     cfg = SwarmConfig(rate_hz=args.rate_hz, vmax=args.vmax, radius=args.radius, swarm_v=args.swarm_v,
                       bcast_ms=max(1, round(1000 / args.bcast_hz)), latency_ms=args.latency_ms, sense_m=args.sense,
                       t_max_s=args.t_max, dynamics=args.dynamics, controller=args.controller)
-    with console.status("building the app for this machine"):
-        from polycc.sim.app_ffi import load
+    facts = None
+    if args.firmware:
+        from polycc.swarm.firmware import run_swarm_firmware
 
-        load(header)
-    with progress_bar(f"flying {args.drones} drones ({args.controller}, simulated s)", int(args.t_max)) as update:
-        res = run_swarm(header, cmap, starts, targets, cfg, Clearance(scene.ellipsoids),
-                        progress=lambda s: update(int(s)))
+        console.print(f"flying {args.drones} real-firmware SITL drones ({args.controller}) with cflib; "
+                      f"task limit {args.t_max:g} s simulated", soft_wrap=True)
+        res, facts = run_swarm_firmware(args.firmware, header, cmap, starts, targets, cfg,
+                                        Clearance(scene.ellipsoids), takeoff=args.takeoff,
+                                        say=lambda m: console.print(m, soft_wrap=True))
+    else:
+        with console.status("building the app for this machine"):
+            from polycc.sim.app_ffi import load
 
-    table = Table(title=f"polycc swarm-sim: {args.drones} drones, {args.controller}, {args.dynamics}, vmax "
+            load(header)
+        with progress_bar(f"flying {args.drones} drones ({args.controller}, simulated s)", int(args.t_max)) as update:
+            res = run_swarm(header, cmap, starts, targets, cfg, Clearance(scene.ellipsoids),
+                            progress=lambda s: update(int(s)))
+
+    dyn = "real firmware" if args.firmware else args.dynamics
+    table = Table(title=f"polycc swarm-sim: {args.drones} drones, {args.controller}, {dyn}, vmax "
                         f"{args.vmax:g} m/s, r = {args.radius:g} m",
                   header_style="bold", caption="positions in m; nearest = min distance to another drone's centre "
                                                "(>= 2 r); clear = min distance to the splat ellipsoids minus r; "
@@ -153,6 +192,10 @@ def run(args) -> int:
                           for i in range(res.n)],
         "wall_us_per_drone_tick": res.step_us,
     }
+    if facts is not None:
+        summary["firmware"] = {k: facts[k] for k in ("outcome", "notes", "relayed", "build_s", "rtf", "wall_s",
+                                                     "landed")}
+        summary["dynamics"] = "real firmware SITL (rigid body)"
     (out / "swarm.json").write_text(json.dumps(summary, indent=1) + "\n")
     mind = f"{res.min_pair_m:.3f} m (bound 2 r = {2 * args.radius:.3f} m)" if math.isfinite(res.min_pair_m) else "-"
     task = f"{res.task_time_s:.2f} s" if math.isfinite(res.task_time_s) else f"not all found in {res.time_s:.1f} s"
@@ -162,4 +205,11 @@ def run(args) -> int:
                   f"{len(targets.mu)} peaks), task time: {task}", soft_wrap=True)
     console.print(f"coverage plot: {plot}; summary: {out / 'swarm.json'} ({time.perf_counter() - t0:.1f} s)",
                   soft_wrap=True)
+    if facts is not None:
+        rtf = ", ".join(f"{r:.2f}" for r in facts["rtf"] if r is not None)
+        console.print(f"real firmware: {facts['outcome']}, {'landed' if facts['landed'] else 'NOT landed'}; "
+                      f"{facts['relayed']} neighbour records relayed; RTF {rtf}; {facts['wall_s']:.0f} s wall",
+                      soft_wrap=True)
+        if facts["outcome"] not in ("covered", "timeout") or not facts["landed"]:
+            return 1
     return 1 if dd + do else 0

@@ -40,6 +40,26 @@ def _thin(P: np.ndarray, eps: float) -> np.ndarray:
     return P[keep]
 
 
+def obstacle_clearance(traj: list, clearance, radius: float) -> tuple[list[int], list[float]]:
+    """Per drone: samples inside an obstacle (clearance < r) and the minimum clearance to the splat
+    ellipsoids minus r (m, a lower bound), of each (k, 3) true path; (0, nan) without ``clearance``."""
+    from polycc.sim.clearance import densify
+
+    obst, clear = [], []
+    for t in traj:
+        if clearance is None:
+            clear.append(math.nan)
+            obst.append(0)
+            continue
+        # hovering drones repeat their position: keep the samples that moved > THIN_M since the last
+        # kept one and check those with the radius enlarged by THIN_M (every dropped sample is within
+        # THIN_M of a kept one), so a collision is never missed and the clearance is a lower bound
+        c, hits, _ = clearance.evaluate(densify(_thin(np.asarray(t, float), THIN_M), THIN_M), radius + THIN_M)
+        clear.append(float(c))
+        obst.append(int(hits))
+    return obst, clear
+
+
 @dataclass
 class SwarmConfig:
     rate_hz: int = 500
@@ -223,20 +243,7 @@ def run_swarm(header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, c
             progress(tick / 1000.0)
     wall = time.perf_counter() - wall0
     traj = [np.asarray(t) for t in traj]
-    obst, clear = [], []
-    for t in traj:
-        if clearance is not None:
-            from polycc.sim.clearance import densify
-
-            # hovering drones repeat their position: keep the samples that moved > THIN_M since the last
-            # kept one and check those with the radius enlarged by THIN_M (every dropped sample is within
-            # THIN_M of a kept one), so a collision is never missed and the clearance is a lower bound
-            c, hits, _ = clearance.evaluate(densify(_thin(t, THIN_M), THIN_M), cfg.radius + THIN_M)
-            clear.append(float(c))  # a lower bound (THIN_M): the drone may have been up to 1 cm further
-            obst.append(int(hits))
-        else:
-            clear.append(math.nan)
-            obst.append(0)
+    obst, clear = obstacle_clearance(traj, clearance, cfg.radius)
     return SwarmResult(n, traj, detected, min_pair if n > 1 else math.inf, len(pair_hit), obst, clear, statuses,
                        tick * 1e-3, [float(np.sum(np.linalg.norm(np.diff(t, axis=0), axis=1))) for t in traj],
                        [c.cell for c in ctrls], 1e6 * wall / max(1, tick * n), near, detected_by, targets, starts)

@@ -1,0 +1,46 @@
+"""`polycc swarm-sim --firmware`: four real Crazyflie firmwares (CrazySim SITL instances, each with the app
+and the demo-arena header) flown as a swarm by real cflib with the same ground code as `polycc swarm-fly`
+(issue 19's CI scenario): HL takeoff of all four, neighbours relayed over the app channel, coverage
+controllers, apps disabled, HL landing. It fails on any collision (drone-drone on the instances' truth,
+drone-obstacle exact to the splat ellipsoids), on a missed peak and when a drone does not land.
+
+This is the test that found the 31-byte app-channel reply that crashed the firmware at the first
+neighbour record (tests/sim/test_swarm_app.py::test_no_reply_exceeds_the_crtp_payload)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import pytest
+
+from polycc.cli import main
+from polycc.testing.files import sitl_tarball
+
+pytest.importorskip("cflib")
+pytestmark = pytest.mark.skipif(shutil.which("cmake") is None and not os.environ.get("CI"),
+                                reason="cmake not installed (.ci/run installs it)")
+
+
+@pytest.mark.slow
+def test_four_real_firmware_drones_cover_and_land(tmp_path, capsys):
+    tree = sitl_tarball()
+    if not tree.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"{tree}: SITL firmware tarball not found; CI needs ../shared/firmware beside the clone")
+        pytest.skip(f"{tree}: SITL firmware tarball not found (set POLYCC_SHARED_FIRMWARE)")
+    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
+    out = tmp_path / "b"
+    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(out)]) == 0
+    capsys.readouterr()
+    rc = main(["swarm-sim", str(out), "--drones", "4", "--random-targets", "1", "--seed", "1", "--t-max", "30",
+               "--takeoff", "0.7", "--firmware", str(tree)])
+    text = capsys.readouterr().out
+    s = json.loads((out / "swarm.json").read_text())
+    assert rc == 0, text
+    fw = s["firmware"]
+    assert fw["outcome"] == "covered" and fw["landed"], text
+    assert s["collisions"] == 0 and s["min_inter_drone_m"] > 2 * s["radius"], text
+    assert s["coverage_ratio"] == 1.0 and fw["relayed"] > 0
+    assert (out / "coverage.png").stat().st_size > 10_000
