@@ -32,7 +32,7 @@ from pathlib import Path
 
 from polycc.errors import PolyccError
 from polycc.link.cflib_tools import close_without_stop, set_param
-from polycc.onboard.app import REPLY_FORMAT, STATUS_NAMES, STATUS_TEXT, STOP_REASONS
+from polycc.onboard.app import FLYING, REPLY_FORMAT, STATUS_NAMES, STATUS_TEXT, STOP_REASONS
 
 DEFAULT_URI = "udp://127.0.0.1:19850"
 POSITION = ("stateEstimate.x", "stateEstimate.y", "stateEstimate.z")
@@ -294,9 +294,11 @@ def _leave(cf, session: _Session, log: FlightLog, land: bool) -> None:
     try:
         if not cf.is_connected():
             return
-        cf.param.set_value("polycc.enable", 0)
+        set_param(cf, "polycc.enable", 0)  # confirmed: a queued write could be overtaken by the land
+        # the hand-over (status 14) holds until the PID's z integral has decayed; a land sent while the app
+        # still streams its hold would be cancelled by it
+        session.wait(lambda: session.status() not in FLYING, "handing over", 10.0, watch_app=False)
         log.note("app disabled: the high-level commander holds the position")
-        time.sleep(0.3)
         if land:
             pos = session.position()
             z = pos[2] if pos else 1.0
