@@ -41,6 +41,7 @@ static uint8_t pOn;
 static float pTube = POLYCC_SHIELD_DEFAULT_TUBE, pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
 static float pK1 = POLYCC_SHIELD_DEFAULT_K1, pK0 = POLYCC_SHIELD_DEFAULT_K0;
 static float pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
+static float pPsiCap = POLYCC_SHIELD_DEFAULT_PSI_CAP;
 
 /* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
 typedef struct mailbox {
@@ -111,6 +112,7 @@ static void fillParams(polycc_shield_params_t *q)
     q->tube = pTube;
     q->v_term = 0.05f;
     q->a_term = 0.5f;
+    q->psi_cap = pPsiCap;
     q->n_lat = 3u; /* 20 ms estimator delay + the 10 ms until the decision is flown */
     q->n_commit = 1u;
     q->n_steps = POLYCC_SHIELD_MAX_STEPS;
@@ -141,12 +143,18 @@ void polycc_controller_init(void)
     pK1 = POLYCC_SHIELD_DEFAULT_K1;
     pK0 = POLYCC_SHIELD_DEFAULT_K0;
     pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
+    pPsiCap = POLYCC_SHIELD_DEFAULT_PSI_CAP;
     resetState();
 }
 
 const polycc_controller_trace_t *polycc_controller_trace(void)
 {
     return &trace;
+}
+
+const polycc_shield_job_t *polycc_controller_job(void)
+{
+    return &job;
 }
 
 /* The velocity the PID cascade aims for under sp (world frame); false for manual setpoints. */
@@ -385,6 +393,8 @@ PARAM_ADD(PARAM_FLOAT, vmax, &pVmax)
 PARAM_ADD(PARAM_FLOAT, k1, &pK1)
 /** @brief ECBF gain on the barrier, 1/s^2 (default 4) */
 PARAM_ADD(PARAM_FLOAT, k0, &pK0)
+/** @brief Clearance cap D on psi, m (0: off; psi <- min(psi, D), flat beyond D, as a capped spatial index) */
+PARAM_ADD(PARAM_FLOAT, psicap, &pPsiCap)
 PARAM_GROUP_STOP(polyccShield)
 
 /**

@@ -57,6 +57,7 @@
 #define POLYCC_SHIELD_DEFAULT_VMAX 3.0f   /* m/s: speed cap of the candidate */
 #define POLYCC_SHIELD_DEFAULT_K1 4.0f     /* 1/s */
 #define POLYCC_SHIELD_DEFAULT_K0 4.0f     /* 1/s^2 */
+#define POLYCC_SHIELD_DEFAULT_PSI_CAP 0.0f /* m: polyccShield.psicap, clearance cap D on psi (0: off) */
 #define POLYCC_SHIELD_DEFAULT_RADIUS 0.1f /* m: polyccShield.radius, the shield's own (polycc.radius is the app's) */
 /* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
 #define POLYCC_SHIELD_POS_KP 2.0f
@@ -97,5 +98,7 @@ typedef struct polycc_controller_trace {
     uint8_t on;
 } polycc_controller_trace_t;
 const polycc_controller_trace_t *polycc_controller_trace(void);
+/* The last plan (its modelled path, flags, inputs in job->in; for tests and diagnostics). */
+const polycc_shield_job_t *polycc_controller_job(void);
 
 #endif /* POLYCC_CONTROLLER_H */

@@ -60,6 +60,8 @@ typedef struct polycc_shield_params {
     float tube;     /* model-tracking allowance e_tube, m */
     float v_term;   /* terminal speed for "hover", m/s */
     float a_term;   /* terminal acceleration for "hover", m/s^2 */
+    float psi_cap;  /* clearance cap D, m (0: off): every psi the shield uses is min(psi, D), its gradient
+                     * zeroed when capped -- a flat but still certified lower bound (a spatial index's) */
     uint32_t n_lat;     /* model steps flown under u_app first (estimator delay + decision latency) */
     uint32_t n_commit;  /* model steps under the candidate, then the brake */
     uint32_t n_steps;   /* horizon, model steps (<= POLYCC_SHIELD_MAX_STEPS) */

@@ -55,6 +55,7 @@ class ShieldParams:
     tube: float = 0.05
     v_term: float = 0.05
     a_term: float = 0.5
+    psi_cap: float = 0.0  # clearance cap D, m (0: off): psi <- min(psi, D), gradient 0 where capped
     n_lat: int = 3
     n_commit: int = 1
     n_steps: int = 200
@@ -100,7 +101,7 @@ def params_ok(q: dict) -> bool:
             and _in(q["a_up"], F("1.0e-3"), F(1e3)) and _in(q["a_dn"], F("1.0e-3"), F(1e3))
             and _in(q["tau"], q["h"], F(10.0)) and _in(q["k1"], Z, F(1e3)) and _in(q["k0"], Z, F(1e4))
             and _in(q["v_max"], F("1.0e-3"), VA_MAX) and _in(q["tube"], Z, F(10.0))
-            and _in(q["v_term"], Z, F(10.0)) and _in(q["a_term"], Z, F(100.0))
+            and _in(q["v_term"], Z, F(10.0)) and _in(q["a_term"], Z, F(100.0)) and _in(q["psi_cap"], Z, B.POS_MAX)
             and 1 <= q["n_steps"] <= MAX_STEPS and q["n_lat"] <= q["n_steps"]
             and q["n_commit"] <= q["n_steps"] - q["n_lat"] and 1 <= q["max_evals"] <= MAX_EVALS)
 
@@ -121,7 +122,10 @@ def _saturate(u: np.ndarray, vmax) -> bool:
 def _psi(scene: PackedScene, q: dict, p) -> tuple[np.float32, np.ndarray, bool]:
     kp = B.Params(kappa=float(q["kappa"]), radius=float(q["radius"]), beta=1.0, c_clf=0.0, v_max=1.0)
     psi, grad, flags = B.barrier(scene, kp, np.asarray(p, F).reshape(1, 3))
-    return psi[0], grad[0], bool(flags[0] & B.FLAG_INVALID)
+    psi, grad = psi[0], grad[0].copy()
+    if q["psi_cap"] > Z and psi > q["psi_cap"]:
+        psi, grad = q["psi_cap"], np.zeros(3, F)
+    return psi, grad, bool(flags[0] & B.FLAG_INVALID)
 
 
 def _cover(lam, n: int, i: int, c) -> int:
