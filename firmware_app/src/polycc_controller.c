@@ -41,6 +41,7 @@ static uint8_t pOn;
 static float pTube = POLYCC_SHIELD_DEFAULT_TUBE, pVmax = POLYCC_SHIELD_DEFAULT_VMAX;
 static float pK1 = POLYCC_SHIELD_DEFAULT_K1, pK0 = POLYCC_SHIELD_DEFAULT_K0;
 static float pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
+static float pPsiCap = POLYCC_SHIELD_DEFAULT_PSI_CAP;
 
 /* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
 typedef struct mailbox {
@@ -55,6 +56,7 @@ typedef struct decision {
     float planned[3];  /* desired velocity it was planned for */
     uint32_t from, to; /* flown for from <= tick < to (stabilizer ticks) */
     bool pass;         /* the live setpoint passes while it stays near `planned` */
+    bool brake;        /* the backup: the brake policy at the live estimate (polycc_shield_brake) */
     bool valid;
 } decision_t;
 
@@ -62,6 +64,8 @@ static mailbox_t mbox;
 static decision_t cur, next;
 static volatile bool on; /* the shield filters setpoints (written by the app task) */
 static bool warnedManual, warnedSlow;
+static bool holding; /* the backup holds position at holdAt (stabilizer side) */
+static float holdAt[3];
 static uint32_t lastPlan;
 static bool planned;
 static polycc_shield_job_t job; /* 4 kB: one plan */
@@ -99,19 +103,21 @@ static void fillParams(polycc_shield_params_t *q)
     q->kappa = polycc_app_scene_kappa();
     q->radius = pRadius;
     q->h = 0.01f;
-    q->k_v = 4.2803f; /* PID_VEL_X_KP 25 deg per m/s times g (polycc.sim.dynamics.CrazyflieParams) */
+    q->k_v = POLYCC_SHIELD_K_V; /* PID_VEL_X_KP 25 deg per m/s times g (polycc.sim.dynamics.CrazyflieParams) */
     q->k_z = 9.3f;
-    q->a_xy = 3.96f;  /* g tan 22 deg */
+    q->a_xy = POLYCC_SHIELD_A_XY;
     q->a_up = 11.77f; /* 1.2 g */
     q->a_dn = 5.69f;  /* 0.58 g */
-    q->tau = 1.0f / 6.0f;
+    q->tau = POLYCC_SHIELD_TAU; /* conservative: attitude loop 1/6 s plus rate loop and motor lag */
     q->k1 = pK1;
     q->k0 = pK0;
     q->v_max = pVmax;
     q->tube = pTube;
     q->v_term = 0.05f;
     q->a_term = 0.5f;
-    q->n_lat = 3u; /* 20 ms estimator delay + the 10 ms until the decision is flown */
+    q->psi_cap = pPsiCap;
+    q->a_brake = POLYCC_SHIELD_A_BRAKE;
+    q->n_lat = POLYCC_SHIELD_N_LAT;
     q->n_commit = 1u;
     q->n_steps = POLYCC_SHIELD_MAX_STEPS;
     q->max_evals = polycc_controller_max_evals();
@@ -126,6 +132,7 @@ static void resetState(void)
     on = false;
     warnedManual = false;
     warnedSlow = false;
+    holding = false;
     lastPlan = 0u;
     planned = false;
     memset(&trace, 0, sizeof trace);
@@ -141,12 +148,18 @@ void polycc_controller_init(void)
     pK1 = POLYCC_SHIELD_DEFAULT_K1;
     pK0 = POLYCC_SHIELD_DEFAULT_K0;
     pRadius = POLYCC_SHIELD_DEFAULT_RADIUS;
+    pPsiCap = POLYCC_SHIELD_DEFAULT_PSI_CAP;
     resetState();
 }
 
 const polycc_controller_trace_t *polycc_controller_trace(void)
 {
     return &trace;
+}
+
+const polycc_shield_job_t *polycc_controller_job(void)
+{
+    return &job;
 }
 
 /* The velocity the PID cascade aims for under sp (world frame); false for manual setpoints. */
@@ -173,6 +186,32 @@ static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_
     return true;
 }
 
+/* The commanded brake's velocity error bound e = a_xy / k_v, m/s: the strongest brake that stays inside
+ * the tilt limits in every direction (the model assumes only a_brake of it). */
+static float brakeErr(void)
+{
+    return POLYCC_SHIELD_A_XY / POLYCC_SHIELD_K_V;
+}
+
+/* The backup near rest: hold the position (all three axes) where the vehicle got slow. */
+static void overrideHold(setpoint_t *sp, const float hold[3])
+{
+    sp->mode.x = modeAbs;
+    sp->mode.y = modeAbs;
+    sp->mode.z = modeAbs;
+    sp->position.x = hold[0];
+    sp->position.y = hold[1];
+    sp->position.z = hold[2];
+    sp->velocity.x = 0.0f;
+    sp->velocity.y = 0.0f;
+    sp->velocity.z = 0.0f;
+    sp->velocity_body = false;
+    sp->acceleration.x = 0.0f;
+    sp->acceleration.y = 0.0f;
+    sp->acceleration.z = 0.0f;
+    trace.overrides += 1u;
+}
+
 static void override(setpoint_t *sp, const float u[3])
 {
     sp->mode.x = modeVelocity;
@@ -197,8 +236,7 @@ static bool near3(const float a[3], const float b[3], float tol)
 void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float vel[3], const float acc[3],
                               float yaw_deg, uint32_t tick)
 {
-    static const float zero[3] = {0.0f, 0.0f, 0.0f};
-    float ud[3] = {0.0f, 0.0f, 0.0f};
+    float ud[3] = {0.0f, 0.0f, 0.0f}, ub[3];
     bool manual = !desiredVelocity(sp, pos, yaw_deg, ud), isOn;
     decision_t d;
     taskENTER_CRITICAL();
@@ -217,6 +255,7 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
     isOn = on;
     taskEXIT_CRITICAL();
     if (!isOn) {
+        holding = false;
         return;
     }
     if (manual) {
@@ -231,10 +270,21 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
     if (!d.valid) { /* just switched on: the first decision is on its way */
         return;
     }
-    if ((int32_t)(tick - d.to) >= 0) { /* not replaced in time: the backup */
-        override(sp, zero);
+    if ((int32_t)(tick - d.to) >= 0 || d.brake) { /* the backup, or a decision not replaced in time */
+        if (!holding && (vel[0] * vel[0] + vel[1] * vel[1]) + vel[2] * vel[2] <=
+                            POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED) {
+            memcpy(holdAt, pos, sizeof holdAt);
+            holding = true;
+        }
+        if (holding) {
+            overrideHold(sp, holdAt);
+        } else {
+            polycc_shield_brake(ub, vel, brakeErr());
+            override(sp, ub);
+        }
         return;
     }
+    holding = false;
     if (d.pass && near3(ud, d.planned, POLYCC_SHIELD_PASS_TOL)) {
         return;
     }
@@ -259,6 +309,7 @@ void polycc_controller_plan(uint32_t now)
     mailbox_t m;
     decision_t d;
     const float *uApp;
+    float uB[3];
     uint32_t f;
     float speed2;
     if (!pOn && !on) {
@@ -304,7 +355,12 @@ void polycc_controller_plan(uint32_t now)
         return;
     }
     fillParams(&jobPrm);
-    uApp = d.valid && !d.pass ? d.u : m.ud;
+    if (d.valid && d.brake) { /* flown as the brake policy: its command at this estimate */
+        polycc_shield_brake(uB, m.vel, brakeErr());
+        uApp = uB;
+    } else {
+        uApp = d.valid && !d.pass ? d.u : m.ud;
+    }
     f = polycc_shield_run(&job, polycc_app_scene(), &jobPrm, m.pos, m.vel, m.acc, uApp, m.ud);
     trace.decisions += 1u;
     trace.last_flags = f;
@@ -333,6 +389,8 @@ void polycc_controller_plan(uint32_t now)
         }
     } else {
         trace.backups += 1u;
+        d.brake = true;
+        polycc_shield_brake(d.u, m.vel, brakeErr());
         if (pOn) {
             trace.status = POLYCC_SHIELD_STATUS_BACKUP;
         }
@@ -385,6 +443,8 @@ PARAM_ADD(PARAM_FLOAT, vmax, &pVmax)
 PARAM_ADD(PARAM_FLOAT, k1, &pK1)
 /** @brief ECBF gain on the barrier, 1/s^2 (default 4) */
 PARAM_ADD(PARAM_FLOAT, k0, &pK0)
+/** @brief Clearance cap D on psi, m (0: off; psi <- min(psi, D), flat beyond D, as a capped spatial index) */
+PARAM_ADD(PARAM_FLOAT, psicap, &pPsiCap)
 PARAM_GROUP_STOP(polyccShield)
 
 /**

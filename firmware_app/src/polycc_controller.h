@@ -16,8 +16,9 @@
  *     delays the 1 kHz loop.
  * A decision planned from the estimate of tick t0 is flown from t0 + 10 to t0 + 20 (the model's
  * latency and commit, n_lat = 3, n_commit = 1 steps of 10 ms): certified -> the candidate (the
- * setpoint passes unchanged when the candidate is the desired velocity), otherwise the backup
- * u = 0 (brake to hover); a decision that is not replaced in time expires into the backup.
+ * setpoint passes unchanged when the candidate is the desired velocity), otherwise the backup,
+ * the brake policy (polycc_shield_brake, recomputed every tick from the live velocity estimate);
+ * a decision that is not replaced in time expires into the backup.
  * Setpoints the shield changes become world-frame velocity setpoints (yaw fields kept).  Manual
  * attitude/rate/thrust setpoints (x, y or z mode disabled) pass unfiltered: status manual,
  * counted, one warning per switch-on.
@@ -50,14 +51,26 @@
 #define POLYCC_SHIELD_CPU_SHARE_PERCENT 25u
 /* Cycle model of the plan's own work besides psi (polycc/budget/cycle_model.py shield_plan_cycles). */
 #define POLYCC_SHIELD_FIXED_CYCLES 4000u /* mailbox, candidate, decision, bookkeeping */
-#define POLYCC_SHIELD_STEP_CYCLES 260u   /* one model step plus its share of the coverage walk (measured 236) */
+#define POLYCC_SHIELD_STEP_CYCLES 300u   /* one model step plus its share of the coverage walk (measured 236
+                                          * before the brake policy; + its sqrt and divide, estimated) */
 
 /* Defaults of the polyccShield parameter group. */
 #define POLYCC_SHIELD_DEFAULT_TUBE 0.05f  /* m: model-tracking allowance e_tube */
 #define POLYCC_SHIELD_DEFAULT_VMAX 3.0f   /* m/s: speed cap of the candidate */
 #define POLYCC_SHIELD_DEFAULT_K1 4.0f     /* 1/s */
 #define POLYCC_SHIELD_DEFAULT_K0 4.0f     /* 1/s^2 */
+#define POLYCC_SHIELD_DEFAULT_PSI_CAP 0.0f /* m: polyccShield.psicap, clearance cap D on psi (0: off) */
 #define POLYCC_SHIELD_DEFAULT_RADIUS 0.1f /* m: polyccShield.radius, the shield's own (polycc.radius is the app's) */
+/* The closed-loop model's constants (polycc_shield_params_t; docs/barrier.md section 8). */
+#define POLYCC_SHIELD_K_V 4.2803f   /* 1/s: PID_VEL_X_KP 25 deg per m/s times g */
+#define POLYCC_SHIELD_TAU 0.25f     /* s: attitude loop 1/6 s made conservative for rate loop and motor lag */
+#define POLYCC_SHIELD_A_XY 3.96f    /* m/s^2: tilt limit g tan 22 deg; the brake is commanded at it */
+#define POLYCC_SHIELD_A_BRAKE 3.0f  /* m/s^2: the brake's deceleration as the model assumes it (< A_XY: the
+                                     * velocity loop's integrator and the estimate's delay weaken it) */
+#define POLYCC_SHIELD_N_LAT 3u      /* model steps: 20 ms estimator delay + the 10 ms until flown */
+/* Under the backup, below this speed (m/s) the brake becomes a position hold where it got that slow:
+ * a velocity setpoint of 0 leaves the velocity loop's integrator to creep the vehicle on. */
+#define POLYCC_SHIELD_HOLD_SPEED 0.1f
 /* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
 #define POLYCC_SHIELD_POS_KP 2.0f
 #define POLYCC_SHIELD_POS_VMAX 1.0f
@@ -97,5 +110,7 @@ typedef struct polycc_controller_trace {
     uint8_t on;
 } polycc_controller_trace_t;
 const polycc_controller_trace_t *polycc_controller_trace(void);
+/* The last plan (its modelled path, flags, inputs in job->in; for tests and diagnostics). */
+const polycc_shield_job_t *polycc_controller_job(void);
 
 #endif /* POLYCC_CONTROLLER_H */

@@ -26,7 +26,8 @@ static int sh_params_ok(const polycc_shield_params_t *q)
            sh_in(q->a_xy, 1.0e-3f, 1.0e3f) && sh_in(q->a_up, 1.0e-3f, 1.0e3f) && sh_in(q->a_dn, 1.0e-3f, 1.0e3f) &&
            sh_in(q->tau, q->h, 10.0f) && sh_in(q->k1, 0.0f, 1.0e3f) && sh_in(q->k0, 0.0f, 1.0e4f) &&
            sh_in(q->v_max, 1.0e-3f, POLYCC_SHIELD_VA_MAX) && sh_in(q->tube, 0.0f, 10.0f) &&
-           sh_in(q->v_term, 0.0f, 10.0f) && sh_in(q->a_term, 0.0f, 100.0f) && q->n_steps >= 1u &&
+           sh_in(q->v_term, 0.0f, 10.0f) && sh_in(q->a_term, 0.0f, 100.0f) &&
+           sh_in(q->a_brake, 1.0e-3f, q->a_xy) && sh_in(q->psi_cap, 0.0f, POLYCC_POS_MAX) && q->n_steps >= 1u &&
            q->n_steps <= POLYCC_SHIELD_MAX_STEPS && q->n_lat <= q->n_steps && q->n_commit <= q->n_steps - q->n_lat &&
            q->max_evals >= 1u && q->max_evals <= POLYCC_SHIELD_MAX_EVALS;
 }
@@ -38,6 +39,22 @@ static void sh_kernel_params(const polycc_shield_params_t *q, polycc_params_t *k
     kp->beta = 1.0f; /* unused by polycc_barrier, but must be valid */
     kp->c_clf = 0.0f;
     kp->v_max = 1.0f;
+}
+
+/* psi at p through the kernel, capped at psi_cap (min(psi, D) stays a certified lower bound; its
+ * gradient is zero where capped).  Returns the kernel's flags. */
+static uint32_t sh_psi(const polycc_scene_t *scene, const polycc_shield_params_t *q, const float p[3], float *psi,
+                       float grad[3])
+{
+    polycc_params_t kp;
+    uint32_t fl;
+    sh_kernel_params(q, &kp);
+    fl = polycc_barrier(scene, &kp, p, psi, grad);
+    if (q->psi_cap > 0.0f && *psi > q->psi_cap) {
+        *psi = q->psi_cap;
+        grad[0] = grad[1] = grad[2] = 0.0f;
+    }
+    return fl;
 }
 
 static float sh_dot(const float *a, const float *b)
@@ -110,11 +127,24 @@ static void sh_candidate(polycc_shield_job_t *job, const polycc_shield_params_t 
     memcpy(job->u_c, uc, sizeof uc);
 }
 
-/* The closed-loop model: n_lat steps of u_app, n_commit of u_c, then u = 0. */
+void polycc_shield_brake(float u[3], const float v[3], float e)
+{
+    float n2 = v[0] * v[0] + v[1] * v[1];
+    u[0] = 0.0f;
+    u[1] = 0.0f;
+    u[2] = 0.0f;
+    if (n2 > e * e) {
+        float s = e / sqrtf(n2);
+        u[0] = v[0] - s * v[0];
+        u[1] = v[1] - s * v[1];
+    }
+}
+
+/* The closed-loop model: n_lat steps of u_app, n_commit of u_c, then the brake policy. */
 static void sh_simulate(polycc_shield_job_t *job, const polycc_shield_params_t *q, const float p[3],
                         const float v0[3], const float a0[3], const float u_app[3])
 {
-    static const float zero[3] = {0.0f, 0.0f, 0.0f};
+    const float eb = q->a_brake / q->k_v;
     const float g = q->h / q->tau, h = q->h, a2max = q->a_xy * q->a_xy, adn = -q->a_dn;
     const uint32_t n1 = q->n_lat, n2 = q->n_lat + q->n_commit;
     float v[3], a[3];
@@ -126,8 +156,12 @@ static void sh_simulate(polycc_shield_job_t *job, const polycc_shield_params_t *
     memcpy(job->x[0], p, 3u * sizeof(float));
     job->lam[0] = 0.0f;
     for (k = 0u; k < q->n_steps; ++k) {
-        const float *u = k < n1 ? u_app : (k < n2 ? job->u_c : zero);
-        float d[3], s[3], m2;
+        const float *u = k < n1 ? u_app : job->u_c;
+        float d[3], s[3], m2, ub[3];
+        if (k >= n2) {
+            polycc_shield_brake(ub, v, eb);
+            u = ub;
+        }
         d[0] = q->k_v * (u[0] - v[0]);
         d[1] = q->k_v * (u[1] - v[1]);
         m2 = d[0] * d[0] + d[1] * d[1];
@@ -164,7 +198,6 @@ uint32_t polycc_shield_begin(polycc_shield_job_t *job, const polycc_scene_t *sce
                              const float p[3], const float v[3], const float a0[3], const float u_app[3],
                              const float u_d[3])
 {
-    polycc_params_t kp;
     uint32_t fl;
     job->flags = 0u;
     job->evals = 0u;
@@ -190,8 +223,7 @@ uint32_t polycc_shield_begin(polycc_shield_job_t *job, const polycc_scene_t *sce
         job->flags = POLYCC_SHIELD_INVALID | POLYCC_SHIELD_DONE;
         return job->flags;
     }
-    sh_kernel_params(prm, &kp);
-    fl = polycc_barrier(scene, &kp, p, &job->psi, job->grad);
+    fl = sh_psi(scene, prm, p, &job->psi, job->grad);
     job->evals = 1u;
     if (fl & POLYCC_FLAG_INVALID) {
         job->psi = 0.0f;
@@ -235,7 +267,6 @@ uint32_t polycc_shield_plan(polycc_shield_job_t *job, const polycc_scene_t *scen
 uint32_t polycc_shield_advance(polycc_shield_job_t *job, const polycc_scene_t *scene,
                                const polycc_shield_params_t *prm)
 {
-    polycc_params_t kp;
     float psi, grad[3], cj, L;
     uint32_t j, fl;
     if (job->flags & POLYCC_SHIELD_DONE) {
@@ -246,8 +277,7 @@ uint32_t polycc_shield_advance(polycc_shield_job_t *job, const polycc_scene_t *s
         return job->flags;
     }
     j = job->cov > job->i ? job->cov : job->i + 1u;
-    sh_kernel_params(prm, &kp);
-    fl = polycc_barrier(scene, &kp, job->x[j], &psi, grad);
+    fl = sh_psi(scene, prm, job->x[j], &psi, grad);
     job->evals += 1u;
     if (fl & POLYCC_FLAG_INVALID) {
         job->flags |= POLYCC_SHIELD_BLOCKED | POLYCC_SHIELD_DONE;

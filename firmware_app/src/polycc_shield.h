@@ -60,6 +60,9 @@ typedef struct polycc_shield_params {
     float tube;     /* model-tracking allowance e_tube, m */
     float v_term;   /* terminal speed for "hover", m/s */
     float a_term;   /* terminal acceleration for "hover", m/s^2 */
+    float a_brake;  /* horizontal deceleration of the brake policy, m/s^2 (<= a_xy; see polycc_shield_brake) */
+    float psi_cap;  /* clearance cap D, m (0: off): every psi the shield uses is min(psi, D), its gradient
+                     * zeroed when capped -- a flat but still certified lower bound (a spatial index's) */
     uint32_t n_lat;     /* model steps flown under u_app first (estimator delay + decision latency) */
     uint32_t n_commit;  /* model steps under the candidate, then the brake */
     uint32_t n_steps;   /* horizon, model steps (<= POLYCC_SHIELD_MAX_STEPS) */
@@ -101,6 +104,12 @@ uint32_t polycc_shield_simulate(polycc_shield_job_t *job, const polycc_shield_pa
 /* At most one more psi evaluation; returns job->flags (DONE once decided). */
 uint32_t polycc_shield_advance(polycc_shield_job_t *job, const polycc_scene_t *scene,
                                const polycc_shield_params_t *prm);
+/* The brake policy (the backup), world frame: u_z = 0 and horizontally u = v - min(|v_xy|, e) v_xy/|v_xy|
+ * with e = a_brake / k_v: the PID velocity loop sees a velocity error of at most e against the
+ * motion, k_v e = a_brake <= a_xy, so it stays inside the tilt limits in any direction (the
+ * firmware clips roll and pitch separately: a saturated u = 0 turns an oblique brake).  v: the
+ * velocity estimate, m/s; e: m/s. */
+void polycc_shield_brake(float u[3], const float v[3], float e);
 /* plan, then advance until done. */
 uint32_t polycc_shield_run(polycc_shield_job_t *job, const polycc_scene_t *scene, const polycc_shield_params_t *prm,
                            const float p[3], const float v[3], const float a0[3], const float u_app[3],

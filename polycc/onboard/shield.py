@@ -38,7 +38,8 @@ Z = F(0.0)
 @dataclass(frozen=True)
 class ShieldParams:
     """Mirror of ``polycc_shield_params_t``.  Defaults: the stock Crazyflie PID velocity loop at
-    10 ms (polycc.sim.dynamics.CrazyflieParams) and the app's shield defaults (polycc_controller.h)."""
+    10 ms (polycc.sim.dynamics.CrazyflieParams) made conservative for the full quadrotor (tau, n_lat:
+    docs/barrier.md section 8) and the app's shield defaults (polycc_controller.h)."""
 
     kappa: float = 100.0
     radius: float = 0.1
@@ -48,14 +49,16 @@ class ShieldParams:
     a_xy: float = 3.96  # g tan 22 deg
     a_up: float = 11.77  # 1.2 g
     a_dn: float = 5.69  # 0.58 g
-    tau: float = 1.0 / 6.0
+    tau: float = 0.25  # conservative: the attitude loop's 1/6 s plus the rate loop and motor lag
     k1: float = 4.0
     k0: float = 4.0
     v_max: float = 3.0
     tube: float = 0.05
     v_term: float = 0.05
     a_term: float = 0.5
-    n_lat: int = 3
+    a_brake: float = 3.0  # the brake's deceleration as modelled, m/s^2 (<= a_xy; it is commanded at a_xy)
+    psi_cap: float = 0.0  # clearance cap D, m (0: off): psi <- min(psi, D), gradient 0 where capped
+    n_lat: int = 3  # 20 ms estimator delay + the 10 ms until the decision is flown
     n_commit: int = 1
     n_steps: int = 200
     max_evals: int = 10
@@ -101,6 +104,7 @@ def params_ok(q: dict) -> bool:
             and _in(q["tau"], q["h"], F(10.0)) and _in(q["k1"], Z, F(1e3)) and _in(q["k0"], Z, F(1e4))
             and _in(q["v_max"], F("1.0e-3"), VA_MAX) and _in(q["tube"], Z, F(10.0))
             and _in(q["v_term"], Z, F(10.0)) and _in(q["a_term"], Z, F(100.0))
+            and _in(q["a_brake"], F("1.0e-3"), q["a_xy"]) and _in(q["psi_cap"], Z, B.POS_MAX)
             and 1 <= q["n_steps"] <= MAX_STEPS and q["n_lat"] <= q["n_steps"]
             and q["n_commit"] <= q["n_steps"] - q["n_lat"] and 1 <= q["max_evals"] <= MAX_EVALS)
 
@@ -121,7 +125,10 @@ def _saturate(u: np.ndarray, vmax) -> bool:
 def _psi(scene: PackedScene, q: dict, p) -> tuple[np.float32, np.ndarray, bool]:
     kp = B.Params(kappa=float(q["kappa"]), radius=float(q["radius"]), beta=1.0, c_clf=0.0, v_max=1.0)
     psi, grad, flags = B.barrier(scene, kp, np.asarray(p, F).reshape(1, 3))
-    return psi[0], grad[0], bool(flags[0] & B.FLAG_INVALID)
+    psi, grad = psi[0], grad[0].copy()
+    if q["psi_cap"] > Z and psi > q["psi_cap"]:
+        psi, grad = q["psi_cap"], np.zeros(3, F)
+    return psi, grad, bool(flags[0] & B.FLAG_INVALID)
 
 
 def _cover(lam, n: int, i: int, c) -> int:
@@ -192,20 +199,33 @@ def _candidate(job: Job, q: dict, v, u_d) -> None:
     job.u_c = uc
 
 
+def brake(v, e) -> np.ndarray:
+    """Mirror of ``polycc_shield_brake``: the backup's velocity command for the estimate v (m/s)."""
+    v = np.asarray(v, F)
+    e = F(e)
+    u = np.zeros(3, F)
+    n2 = v[0] * v[0] + v[1] * v[1]
+    if n2 > e * e:
+        s = e / np.sqrt(n2)
+        u[0] = v[0] - s * v[0]
+        u[1] = v[1] - s * v[1]
+    return u
+
+
 def _simulate(job: Job, q: dict, p, v0, a0, u_app) -> None:
+    eb = q["a_brake"] / q["k_v"]
     g = q["h"] / q["tau"]
     h = q["h"]
     a2max = q["a_xy"] * q["a_xy"]
     adn = -q["a_dn"]
     n1, n2 = q["n_lat"], q["n_lat"] + q["n_commit"]
-    zero = np.zeros(3, F)
     v, a = v0.copy(), a0.copy()
     job.a_end = a0.copy()
     x, lam = job.x, job.lam
     x[0] = p
     lam[0] = Z
     for k in range(q["n_steps"]):
-        u = u_app if k < n1 else (job.u_c if k < n2 else zero)
+        u = u_app if k < n1 else (job.u_c if k < n2 else brake(v, eb))
         d = np.zeros(3, F)
         d[0] = q["k_v"] * (u[0] - v[0])
         d[1] = q["k_v"] * (u[1] - v[1])
@@ -229,6 +249,18 @@ def _simulate(job: Job, q: dict, p, v0, a0, u_app) -> None:
     job.n = q["n_steps"]
     if not (_dot(v, v) <= q["v_term"] * q["v_term"]) or not (_dot(a, a) <= q["a_term"] * q["a_term"]):
         job.flags |= NO_STOP | DONE
+
+
+def simulate(prm: ShieldParams, p, v, a0, u_app, u_c) -> Job:
+    """The closed-loop model alone (no psi, no validation): the path ``polycc_shield_simulate`` traces
+    for the candidate ``u_c`` (for the benchmarks; ``job.x[: job.n + 1]``)."""
+    q = prm.f32()
+    p, v, a0, u_app, u_c = (np.array(t, F).reshape(3) for t in (p, v, a0, u_app, u_c))
+    job = Job(x=np.zeros((MAX_STEPS + 1, 3), F), lam=np.zeros(MAX_STEPS + 1, F), u_c=u_c, u_d=u_c.copy(),
+              a_end=np.zeros(3, F), psi=Z, grad=np.zeros(3, F), c=Z, min_c=Z, n=0, i=0, cov=0, evals=0, flags=0)
+    with np.errstate(all="ignore"):
+        _simulate(job, q, p, v, a0, u_app)
+    return job
 
 
 def advance(scene: PackedScene, prm: ShieldParams, job: Job) -> Job:
@@ -268,9 +300,11 @@ def run(scene: PackedScene, prm: ShieldParams, p, v, a0, u_app, u_d) -> Job:
     return job
 
 
-def command(job: Job) -> np.ndarray:
-    """The velocity the gatekeeper flies: the candidate if certified, else the backup (brake, 0)."""
-    return job.u_c.copy() if job.flags & CERTIFIED else np.zeros(3, F)
+def command(job: Job, prm: ShieldParams | None = None, v=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """The velocity the gatekeeper flies now: the candidate if certified, else the backup, the brake
+    policy (:func:`brake`, commanded at a_xy) at the velocity estimate ``v``."""
+    prm = prm or ShieldParams()
+    return job.u_c.copy() if job.flags & CERTIFIED else brake(v, F(prm.a_xy) / F(prm.k_v))
 
 
 def flag_names(flags: int) -> list[str]:

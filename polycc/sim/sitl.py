@@ -60,6 +60,7 @@ class FlightConfig:
     shield: bool = False  # fly the out-of-tree controller with polyccShield.enable = 1 (the shield filters the app)
     shield_tube: float | None = None  # m, polyccShield.tube (default: the app's)
     shield_radius: float | None = None  # m, polyccShield.radius (default: clearance_radius, else radius)
+    shield_psi_cap: float = 0.0  # m, polyccShield.psicap (0: off): fly the shield on min(psi, cap)
 
     def params(self, kappa: float) -> Params:
         return Params(kappa=kappa, radius=self.radius, beta=self.beta, c_clf=self.clf_gain, v_max=self.vmax)
@@ -147,6 +148,7 @@ class Simulator:
             r_sh = cfg.shield_radius if cfg.shield_radius is not None else (
                 cfg.clearance_radius if cfg.clearance_radius is not None else cfg.radius)
             app.set_param("polyccShield", "radius", r_sh)
+            app.set_param("polyccShield", "psicap", cfg.shield_psi_cap)
         gaps: list[float] = []
         accs: list[np.ndarray] = []
         for name, val in (("vmax", cfg.vmax), ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),

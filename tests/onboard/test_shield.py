@@ -16,8 +16,9 @@ from polycc.onboard import shield as S
 from polycc.testing.bitexact import arm_or_skip, scene
 
 PRM = [S.ShieldParams(), S.ShieldParams(kappa=30.0, radius=0.05, tube=0.02, k1=2.0, k0=1.0, v_max=1.0, n_lat=0,
-                                        n_commit=3, n_steps=120, max_evals=4, tau=0.05),
-       S.ShieldParams(kappa=300.0, radius=0.0, tube=0.1, v_term=0.1, a_term=1.0, max_evals=32, h=0.02, n_steps=100)]
+                                        n_commit=3, n_steps=120, max_evals=4, tau=0.05, psi_cap=0.4, a_brake=3.96),
+       S.ShieldParams(kappa=300.0, radius=0.0, tube=0.1, v_term=0.1, a_term=1.0, max_evals=32, h=0.02, n_steps=100,
+                      psi_cap=0.15, a_brake=1.5)]
 
 
 def _rows(sc, n: int, seed: int) -> np.ndarray:
@@ -179,14 +180,60 @@ def test_at_rest_in_free_space_is_certified_and_fast_at_a_wall_is_not(name):
     fast = tuple(-outward * 3.0)
     job = S.run(sc, prm, near, fast, zero, fast, fast)
     assert not job.flags & S.CERTIFIED, "3 m/s at 5 cm from a face cannot be certified"
-    assert np.array_equal(S.command(job), np.zeros(3, np.float32)), "the backup brakes"
+    u = S.command(job, prm, fast).astype(np.float64)
+    vf = np.asarray(fast, np.float64)
+    e = float(np.float32(prm.a_xy) / np.float32(prm.k_v))
+    h = np.hypot(vf[0], vf[1])
+    assert u[2] == 0.0 and np.linalg.norm((vf - u)[:2]) == pytest.approx(min(h, e), rel=1e-5), "the backup brakes"
+    assert h == 0.0 or u[0] * vf[1] - u[1] * vf[0] == pytest.approx(0.0, abs=1e-5), "against the motion"
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(["hulls", "boxes"]), cap=st.floats(0.01, 1.0),
+       p=st.tuples(*[st.floats(-1, 11, width=32)] * 3), v=vec)
+def test_psi_cap_is_a_flat_lower_bound(name, cap, p, v):
+    """psi_cap: every psi the shield uses is min(psi, cap) with a zero gradient where capped, so it is
+    never above the uncapped one (still certified) and the candidate is not shaped beyond the cap."""
+    sc = scene(name)
+    zero = (0.0, 0.0, 0.0)
+    free = S.plan(sc, S.ShieldParams(), p, v, zero, v, v)
+    capped = S.plan(sc, S.ShieldParams(psi_cap=cap), p, v, zero, v, v)
+    if free.flags & S.INVALID:
+        assert capped.flags & S.INVALID
+        return
+    c = np.float32(cap)
+    assert capped.psi == min(free.psi, c)
+    if free.psi > c:
+        assert np.all(capped.grad == 0.0) and not capped.flags & S.ACTIVE
+        assert np.array_equal(capped.u_c, capped.u_d)
+    else:
+        assert np.array_equal(capped.grad, free.grad)
+
+
+@pytest.mark.parametrize("name", ["hulls", "boxes"])
+def test_brake_model_never_saturates_and_stops(name):
+    """The brake policy as modelled decelerates at most a_brake <= a_xy against the horizontal motion
+    (inside the tilt limits in any direction) and reaches hover within the horizon from 3 m/s."""
+    sc = scene(name)
+    prm = S.ShieldParams()
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        v = rng.normal(size=3)
+        v = v / np.linalg.norm(v) * rng.uniform(0.1, 3.0)
+        ub = S.brake(v, np.float32(prm.a_brake) / np.float32(prm.k_v))
+        job = S.plan(sc, prm, (5.0, 5.0, 1.0), v, (0, 0, 0), ub, ub)
+        assert not job.flags & S.NO_STOP, S.flag_names(job.flags)
+        x = job.x[: job.n + 1].astype(np.float64)
+        acc = np.diff(x, 2, axis=0) / prm.h**2
+        assert np.all(np.hypot(acc[:, 0], acc[:, 1]) <= prm.a_brake * (1 + 1e-3) + 1e-3)
 
 
 def test_invalid_params_are_refused():
     sc = scene("boxes")
     zero = (0.0, 0.0, 0.0)
     for bad in (dict(tau=0.001), dict(n_steps=0), dict(n_steps=201), dict(n_lat=150, n_commit=60), dict(max_evals=0),
-                dict(max_evals=33), dict(kappa=0.5), dict(h=float("nan")), dict(v_max=0.0)):
+                dict(max_evals=33), dict(kappa=0.5), dict(h=float("nan")), dict(v_max=0.0), dict(psi_cap=-0.1),
+                dict(a_brake=4.0), dict(a_brake=0.0)):
         job = S.run(sc, S.ShieldParams(**bad), (5, 5, 1), zero, zero, zero, zero)
         assert job.flags == S.INVALID | S.DONE, bad
         assert np.array_equal(S.command(job), np.zeros(3, np.float32))

@@ -30,13 +30,14 @@ def header(tmp_path_factory):
     return d / "polytopes.h"
 
 
-def _model(header, dynamics="crazyflie", shield=True, start=(0.0, 0.0, 1.0)) -> SitlDeviceModel:
+def _model(header, dynamics="crazyflie", shield=True, start=(0.0, 0.0, 1.0), psi_cap=0.0) -> SitlDeviceModel:
     m = SitlDeviceModel(header, start=start, dynamics=dynamics)
     lib = m.app.lib
     if shield:
         m.app.set_param("stabilizer", "controller", int(lib.ControllerTypeOot))
         m.app.set_param("polyccShield", "enable", 1)
     m.app.set_param("polyccShield", "radius", R)
+    m.app.set_param("polyccShield", "psicap", psi_cap)
     return m
 
 
@@ -75,6 +76,24 @@ def test_velocity_stream_at_a_wall_stops_clear_and_unfiltered_crashes(header, dy
     assert _trace(off).decisions == 0
 
 
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+@pytest.mark.parametrize("speed", [2.0, 3.0])
+def test_velocity_stream_at_a_wall_with_a_capped_barrier(header, dynamics, speed):
+    """Issue 18 regression: psi = min(psi, 0.6 m) (a clearance-capped spatial index: flat, zero gradient
+    beyond 0.6 m, so the ECBF candidate cannot slow the vehicle early and the backup brakes late and
+    hard).  Before the fix the quadrotor ended 4.2 cm (2 m/s) and 14.9 cm (3 m/s) inside the wall: the
+    saturated u = 0 brake was weaker than modelled and the velocity loop's integrator crept the vehicle
+    on after it stopped.  Now it stops with clearance >= r and stays there."""
+    m = _model(header, dynamics, psi_cap=0.6)
+    worst = _stream(m, (speed, 0.0, 0.0), 3.0)
+    x_stop = float(m.dyn.p[0])
+    worst = min(worst, _stream(m, (speed, 0.0, 0.0), 3.0))  # keeps pushing at the wall
+    tr = _trace(m)
+    assert worst >= 0.0, f"capped psi: {-worst:.3f} m into the r-ball of the wall"
+    assert tr.backups > 0 and abs(float(m.dyn.v[0])) < 0.1
+    assert abs(float(m.dyn.p[0]) - x_stop) < 0.02, "held where it stopped (no integrator creep)"
+
+
 def test_high_level_go_to_through_the_wall_is_stopped(header):
     for shield in (True, False):
         m = _model(header, shield=shield)
@@ -111,8 +130,9 @@ def test_manual_attitude_setpoints_pass_unfiltered_with_a_warning(header):
     assert "manual attitude/rate setpoint passed unfiltered" in m.app.debug_output()
 
 
-def test_switching_off_while_braking_is_deferred_then_released(header):
-    m = _model(header)
+@pytest.mark.parametrize("dynamics,psi_cap", [("crazyflie", 0.0), ("crazyflie", 0.6), ("quadrotor", 0.6)])
+def test_switching_off_while_braking_is_deferred_then_released(header, dynamics, psi_cap):
+    m = _model(header, dynamics, psi_cap=psi_cap)
     _stream(m, (1.5, 0.0, 0.0), 1.3)  # close to the wall and fast: the shield brakes
     assert _trace(m).status in (STATUS["backup"], STATUS["filtered"])
     m.app.set_param("polyccShield", "enable", 0)
