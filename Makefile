@@ -7,7 +7,7 @@ OUT ?= out/demo
 
 # Locally `make test` skips tests marked slow; CI (CI=true) runs everything.
 ifeq ($(CI),true)
-PYTEST_MARK :=
+PYTEST_MARK := --durations=40
 else
 PYTEST_MARK := -m "not slow"
 endif
