@@ -50,6 +50,7 @@ from polycc.onboard.app import FLYING, STATUS_TEXT, STOP_REASONS, pack_forget, p
 from polycc.swarm.coverage import Controller, CoverageMap, Targets, voronoi_cells
 
 LOG_PERIOD_MS = 50
+CONNECT_TIMEOUT_S = 90.0  # per attempt: TOC and all param values (a real-firmware SITL needs 6-15 s, more when loaded)
 GOAL_RESEND_M = 0.03  # a new goal is written only when it moved this much, m
 ESTIMATE_LOST_S = 2.0  # wall s without a position sample from a drone: stop (simulated drones may run slow)
 
@@ -91,16 +92,43 @@ class SwarmFlight:
         return float(np.isfinite(self.detected_at).mean()) if len(self.detected_at) else 1.0
 
 
-def _connect_all(uris: list[str]):
-    from cflib.crazyflie.swarm import CachedCfFactory, Swarm
+def _connect_all(uris: list[str], timeout_s: float = CONNECT_TIMEOUT_S):
+    """cflib's ``Swarm`` over links opened in parallel, each with a timeout and one retry with a fresh
+    session: ``Swarm.open_links`` waits forever on a connect that stalls (seen once in four SITL
+    connects on a loaded host; the same stall polycc.sim.firmware.flights retries)."""
+    from cflib.crazyflie.swarm import Swarm
 
-    sw = Swarm(uris, factory=CachedCfFactory(rw_cache=None))
-    try:
-        sw.open_links()
-    except Exception as e:
-        raise PolyccError(f"cannot connect to every drone of {', '.join(uris)}: {e}; are they (or `polycc "
-                          "sim-device` for each) running?") from None
-    return sw
+    from polycc.link.cflib_tools import connect
+
+    done: dict[str, object] = {}
+
+    def one(uri):
+        try:
+            done[uri] = connect(uri, timeout_s)
+        except PolyccError:
+            try:
+                done[uri] = connect(uri, timeout_s)
+            except PolyccError as e:
+                done[uri] = e
+
+    threads = [threading.Thread(target=one, args=(u,), daemon=True) for u in uris]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    failed = [(u, r) for u, r in done.items() if isinstance(r, PolyccError)]
+    if failed:
+        for r in done.values():
+            if not isinstance(r, PolyccError):
+                close_without_stop(r)
+        raise PolyccError(f"cannot connect to every drone: {failed[0][1]}; are they (or `polycc sim-device` for "
+                          "each) running?")
+
+    class _Connected:  # the factory Swarm asks for each URI's SyncCrazyflie: the open ones
+        def construct(self, uri):
+            return done[uri]
+
+    return Swarm(uris, factory=_Connected())
 
 
 def _check(cf, uri: str) -> None:
@@ -121,12 +149,9 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
     ``clock()`` (s; default: the wall clock) times the task: ``t_max``, the takeoff and landing timeouts and
     the detection times; simulated drones slower than real time pass their (slowest) simulated time.
     ``vmax``, ``swarm_v`` (m/s), when given, set every app's ``polycc.vmax`` and ``polycc.swarmV``."""
-    from cflib import crtp
-
     logging.getLogger("cflib.crazyflie.toccache").setLevel(logging.ERROR)
     if len(set(uris)) != len(uris) or not 1 <= len(uris) <= 16:
         raise PolyccError(f"--uris: give 1..16 distinct URIs (got {len(uris)}, the app's table holds 16 neighbours)")
-    crtp.init_drivers()
     n = len(uris)
     sw = _connect_all(uris)
     lock = threading.Lock()
@@ -139,9 +164,7 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
         from cflib.crazyflie.log import LogConfig
 
         for i, uri in enumerate(uris):
-            scf = sw._cfs[uri]
-            scf.wait_for_params()
-            cf = scf.cf
+            cf = sw._cfs[uri].cf
             _check(cf, uri)
             s = _Session(cf, logs[i], lock, None, time.monotonic() + t_max + 120.0)
             sessions.append(s)
