@@ -31,6 +31,7 @@ PER_CLUSTER_CYCLES = 60.0
 PER_ENTERED_CYCLES = 60.0
 PER_POLY_CYCLES = 190.0
 PER_PLANE_CYCLES = 70.0
+INDEX_LOOKUP_CYCLES = 80.0  # cell lookup of the spatial index (float32 cell, two list loads)
 
 
 def cycles(n_clusters: float, entered: float, evaluated: float, planes: float) -> float:
@@ -55,8 +56,25 @@ def us(cyc) -> np.ndarray:
     return np.ceil(np.asarray(cyc, np.float64) / CPU_HZ * 1e6).astype(np.int64)
 
 
+def indexed_cycles(polys, planes):
+    """Cycles of one evaluation through the spatial index when the cell lists ``polys`` polytopes with
+    ``planes`` half-planes in all, every one of them entered, evaluated and fully scanned."""
+    return cycles(0, polys, polys, planes) + INDEX_LOOKUP_CYCLES
+
+
+def list_cycles(packed: PackedScene) -> np.ndarray:
+    """Certified cycles of each list of the index (every listed polytope and plane evaluated)."""
+    w = packed.index.list_work(packed.polys["count"])
+    return indexed_cycles(w[:, 0].astype(np.float64), w[:, 1].astype(np.float64))
+
+
 def worst_cycles(packed: PackedScene) -> float:
-    """Every cluster, polytope and half-plane evaluated."""
+    """Certified worst case of one evaluation.  With a spatial index: the maximum over the cells (each
+    list's polytopes and half-planes all evaluated) and the outside-B path (no polytope).  Without:
+    every cluster, polytope and half-plane evaluated."""
+    if packed.index is not None:
+        used = np.unique(packed.index.cell_list.astype(np.int64))
+        return float(max(np.max(list_cycles(packed)[used]), indexed_cycles(0, 0)))
     return cycles(packed.n_clusters, packed.n_polys, packed.n_polys, packed.n_planes)
 
 
@@ -72,6 +90,8 @@ def state_cycles(packed: PackedScene, params, X: np.ndarray) -> np.ndarray:
     barrier(packed, params, X, stats=stats)
     ev = np.asarray(stats["evaluated"], np.float64)
     mean_planes = packed.n_planes / max(packed.n_polys, 1)
+    if packed.index is not None:
+        return cycles(0, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes) + INDEX_LOOKUP_CYCLES
     return cycles(packed.n_clusters, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
 
 
