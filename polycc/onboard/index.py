@@ -21,6 +21,7 @@ cells (every listed polytope entered, evaluated and all its half-planes scanned)
 from __future__ import annotations
 
 import math
+
 import numpy as np
 
 from polycc.errors import PolyccError
