@@ -395,6 +395,13 @@ uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *para
             tz < (float)ix->nz) {
             uint32_t c = (uint32_t)tx + (uint32_t)ix->nx * ((uint32_t)ty + (uint32_t)ix->ny * (uint32_t)tz);
             uint32_t id = ix->cell_list[c];
+            while (id >= ix->n_lists) { /* octree descent: t doubled exactly, octant from the parities */
+                tx = tx * 2.0f;
+                ty = ty * 2.0f;
+                tz = tz * 2.0f;
+                id = ix->children[8u * (id - ix->n_lists) + (((uint32_t)tx & 1u) | (((uint32_t)ty & 1u) << 1) |
+                                                            (((uint32_t)tz & 1u) << 2))];
+            }
             list = ix->entries + ix->list_start[id];
             m = (uint32_t)ix->list_start[id + 1u] - (uint32_t)ix->list_start[id];
         }

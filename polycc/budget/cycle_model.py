@@ -26,12 +26,14 @@ from polycc.onboard.layout import PackedScene, n_clusters_for
 
 CPU_HZ = 168e6
 DEFAULT_CPU_SHARE = 0.2
+DEFAULT_RATE_HZ = 500.0  # with DEFAULT_CPU_SHARE: a certified worst case of 400 us (67 200 cycles)
 FIXED_CYCLES = 2500.0
 PER_CLUSTER_CYCLES = 60.0
 PER_ENTERED_CYCLES = 60.0
 PER_POLY_CYCLES = 190.0
 PER_PLANE_CYCLES = 70.0
 INDEX_LOOKUP_CYCLES = 80.0  # cell lookup of the spatial index (float32 cell, two list loads)
+INDEX_LEVEL_CYCLES = 30.0  # one octree level of the lookup
 
 
 def cycles(n_clusters: float, entered: float, evaluated: float, planes: float) -> float:
@@ -56,16 +58,19 @@ def us(cyc) -> np.ndarray:
     return np.ceil(np.asarray(cyc, np.float64) / CPU_HZ * 1e6).astype(np.int64)
 
 
-def indexed_cycles(polys, planes):
-    """Cycles of one evaluation through the spatial index when the cell lists ``polys`` polytopes with
-    ``planes`` half-planes in all, every one of them entered, evaluated and fully scanned."""
-    return cycles(0, polys, polys, planes) + INDEX_LOOKUP_CYCLES
+def indexed_cycles(polys, planes, depth=0):
+    """Cycles of one evaluation through the spatial index when the leaf (``depth`` octree levels below
+    its cell) lists ``polys`` polytopes with ``planes`` half-planes in all, every one of them entered,
+    evaluated and fully scanned."""
+    return cycles(0, polys, polys, planes) + INDEX_LOOKUP_CYCLES + INDEX_LEVEL_CYCLES * np.asarray(depth, np.float64)
 
 
-def list_cycles(packed: PackedScene) -> np.ndarray:
-    """Certified cycles of each list of the index (every listed polytope and plane evaluated)."""
+def leaf_cycles(packed: PackedScene) -> tuple[np.ndarray, np.ndarray]:
+    """(list ids, certified cycles) of every reachable leaf of the index (every listed polytope and
+    plane evaluated, the octree descent to its depth)."""
     w = packed.index.list_work(packed.polys["count"])
-    return indexed_cycles(w[:, 0].astype(np.float64), w[:, 1].astype(np.float64))
+    leaves = np.array(packed.index.leaves(), np.int64).reshape(-1, 2)
+    return leaves[:, 0], indexed_cycles(w[leaves[:, 0], 0], w[leaves[:, 0], 1], leaves[:, 1])
 
 
 def worst_cycles(packed: PackedScene) -> float:
@@ -73,8 +78,8 @@ def worst_cycles(packed: PackedScene) -> float:
     list's polytopes and half-planes all evaluated) and the outside-B path (no polytope).  Without:
     every cluster, polytope and half-plane evaluated."""
     if packed.index is not None:
-        used = np.unique(packed.index.cell_list.astype(np.int64))
-        return float(max(np.max(list_cycles(packed)[used]), indexed_cycles(0, 0)))
+        _, cyc = leaf_cycles(packed)
+        return float(max(np.max(cyc, initial=0.0), indexed_cycles(0, 0)))
     return cycles(packed.n_clusters, packed.n_polys, packed.n_polys, packed.n_planes)
 
 
@@ -91,7 +96,8 @@ def state_cycles(packed: PackedScene, params, X: np.ndarray) -> np.ndarray:
     ev = np.asarray(stats["evaluated"], np.float64)
     mean_planes = packed.n_planes / max(packed.n_polys, 1)
     if packed.index is not None:
-        return cycles(0, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes) + INDEX_LOOKUP_CYCLES
+        _, depth = packed.index_leaf(X)
+        return indexed_cycles(0, 0, depth) + cycles(0, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
     return cycles(packed.n_clusters, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
 
 
@@ -111,7 +117,8 @@ def estimate_us(packed: PackedScene, kappa: float = 100.0, samples: int = 400, s
     if not free.any():
         free[:] = True
     typ = state_cycles(packed, params, x[free])
-    return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6), "worst_us": float(worst_cycles(packed) / CPU_HZ * 1e6)}
+    return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6), "worst_us": float(worst_cycles(packed) / CPU_HZ * 1e6),
+            "worst_is_certified": packed.index is not None}
 
 
 # The shield's plan (firmware_app/src/polycc_controller.[ch], docs/barrier.md section 8): one

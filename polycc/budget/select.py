@@ -32,16 +32,19 @@ from typing import Callable
 
 import numpy as np
 
+from polycc.budget.cycle_model import indexed_cycles, worst_cycles
 from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
 from polycc.geometry.union_volume import in_voxels, union_waste
+from polycc.onboard.index import build_index
 from polycc.onboard.layout import (
     DEFAULT_NORMAL_GRID,
     MAX_POLY_PLANES,
     PLANE_BYTES,
     PackedScene,
+    SceneIndex,
     layout_bytes,
     n_clusters_for,
     pack_scene,
@@ -61,13 +64,16 @@ class Budget:
     flash_bytes: int
     max_halfplanes: int | None = None
     rate_cycles: float | None = None
+    clearance_cap: float | None = None  # D of the spatial index (None: no index, worst = every polytope)
+    kappa: float = 100.0  # for the index's tightness slack
 
     def caps(self, n: int, n_normals: int) -> dict[str, int]:
-        """Half-plane capacity for n polytopes and a normal table of n_normals entries, per budget."""
+        """Half-plane capacity for n polytopes and a normal table of n_normals entries, per budget.
+        With an index the rate budget bounds the index's certified worst case instead (in realise)."""
         caps = {"flash": (self.flash_bytes - data_bytes(n, 0, n_normals)) // PLANE_BYTES}
         if self.max_halfplanes is not None:
             caps["halfplanes"] = int(self.max_halfplanes)
-        if self.rate_cycles is not None:
+        if self.rate_cycles is not None and self.clearance_cap is None:
             from polycc.budget.cycle_model import plane_budget
 
             caps["rate"] = plane_budget(self.rate_cycles, n)
@@ -177,7 +183,8 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     for p in polys:
         _, first = np.unique(normal_keys(p.halfplanes), return_index=True)
         rows.append(p.halfplanes[np.sort(first)])
-    for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
+    for _ in range(8):  # pack_scene may close a snapped polytope with extra box planes, or the index may not
+        # fit beside the planes: then retry tighter
         if cap < MIN_PLANES * n:
             return None
         red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES,
@@ -186,6 +193,14 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
             return None
         packed = pack_scene(red[0], verts, max_normals=max_normals, record_cache=caches.setdefault("records", {}))
         over_planes = packed.n_planes - min(caps.values())
+        if budget.clearance_cap is not None:
+            ix = choose_index(packed, budget, budget.flash_bytes - packed.flash_bytes())
+            if ix is None:  # no index fits beside these planes: make room for the coarsest one
+                coarse = build_index(packed, budget.clearance_cap, max(INDEX_CELLS), budget.kappa, max_bytes=0)
+                over_bytes = packed.flash_bytes() + coarse.nbytes() - budget.flash_bytes
+                cap -= max(-(-over_bytes // PLANE_BYTES), 1)
+                continue
+            packed = packed.with_index(ix)
         over_bytes = packed.flash_bytes() - budget.flash_bytes
         dropped = sum(len(h) for h in rows) - sum(len(h) for h in red[0])
         if over_planes <= 0 and over_bytes <= 0:
@@ -193,10 +208,13 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
         cap -= max(over_planes, -(-over_bytes // PLANE_BYTES), 1)
     else:
         return None
+    if budget.clearance_cap is not None and budget.rate_cycles is not None and \
+            worst_cycles(packed) > budget.rate_cycles:
+        return None  # its certified worst case misses --rate-hz / --cpu-share
     # The byte model is exact and the table can only shrink (reduction removes planes, merging
     # removes duplicates, unused entries are dropped).
-    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals), \
-        "byte model out of date"
+    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals) + (
+        packed.index.nbytes() if packed.index is not None else 0), "byte model out of date"
     # (+6: pack_scene may add the axis normals to close an over-elongated polytope)
     assert packed.n_normals <= t_eff + 6 or max_normals is not None and packed.n_normals <= max_normals
     assert packed.flash_bytes() <= budget.flash_bytes
@@ -219,6 +237,35 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     _, _, waste, wci = union_waste(stored, boxes, caches["occupied"], samples=mc_samples, seed=seed)
     return Candidate(n, max_normals, packed, before, normals_before, dropped, before - dropped - packed.n_planes,
                      occupied_volume + waste, wci, 1.0 + waste / occupied_volume, wci / occupied_volume, caps)
+
+
+INDEX_CELLS = (0.5, 1.0, 2.0)  # top cell sizes of the index tried, metres (powers of two)
+
+
+def _leaf_cost(polys, planes, depth):
+    return indexed_cycles(polys, planes, depth)
+
+
+def choose_index(packed: PackedScene, budget: Budget, max_bytes: int, cells=INDEX_CELLS) -> SceneIndex | None:
+    """The spatial index for ``packed`` (cap D = budget.clearance_cap), refined until its certified worst
+    case meets the rate budget (or as far as ``max_bytes`` allows): among the top cell sizes, the one that
+    meets the rate with the fewest bytes, else the one with the smallest worst case; None if no index
+    fits ``max_bytes``."""
+    best = None
+    for s in cells:
+        try:
+            ix = build_index(packed, budget.clearance_cap, s, budget.kappa, target=budget.rate_cycles,
+                             max_bytes=max_bytes, cost=_leaf_cost)
+        except PolyccError:
+            continue
+        if ix.nbytes() > max_bytes:
+            continue
+        w = worst_cycles(packed.with_index(ix))
+        meets = budget.rate_cycles is None or w <= budget.rate_cycles
+        key = (not meets, ix.nbytes() if meets else w, w)
+        if best is None or key < best[0]:
+            best = (key, ix)
+    return None if best is None else best[1]
 
 
 def _largest(lo: int, hi: int, ok: Callable[[int], bool]) -> int:
@@ -360,6 +407,9 @@ def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
                      f"--flash-kb {math.ceil(need / 1024 * 100) / 100:g} or more")
     if budget.max_halfplanes is not None and budget.max_halfplanes < need_planes:
         parts.append(f"--max-halfplanes {budget.max_halfplanes} is too small: use {need_planes} or more")
-    if budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:
+    if budget.rate_cycles is not None and budget.clearance_cap is not None:
+        parts.append("or no candidate's certified worst case fits --rate-hz/--cpu-share: lower --rate-hz, raise "
+                     "--cpu-share or --flash-kb (a finer index), or lower --clearance-cap")
+    elif budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:
         parts.append("--rate-hz is too high for even one polytope: lower it")
     return "; ".join(parts)

@@ -218,8 +218,7 @@ def _barrier_valid(scene: PackedScene, params: Params, p: np.ndarray, cull: bool
         _softmin_update(i, a, ga, kappa, cur, S2, G, nev)
 
     if scene.index is not None:
-        cell = scene.index_cell(p)
-        lid = np.where(cell >= 0, scene.index.cell_list.astype(np.int64)[np.maximum(cell, 0)], -1)
+        lid, _ = scene.index_leaf(p)
         lists = scene.index.lists()
         for L in np.unique(lid[lid >= 0]):
             idx = np.nonzero(lid == L)[0]

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from polycc.errors import PolyccError
-from polycc.onboard.layout import PackedScene, SceneIndex
+from polycc.onboard.layout import PackedScene, SceneIndex, index_bytes
 
 DEFAULT_CLEARANCE_CAP = 0.6  # m
 DEFAULT_CELLS = (0.25, 0.5, 1.0)  # cell sizes s (powers of two, metres) tried by choose_index
@@ -93,10 +93,57 @@ def grid_box(packed: PackedScene, delta: float) -> tuple[np.ndarray, np.ndarray]
     return lo, hi
 
 
-def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: float = 0.5, kappa: float = 100.0,
+def _default_cost(polys, planes):
+    """A proxy of the cycle model (polycc.budget.cycle_model.indexed_cycles) for callers without it."""
+    return 250.0 * np.asarray(polys, np.float64) + 70.0 * np.asarray(planes, np.float64)
+
+
+class _Geometry:
+    """Plane rows of the scene and the per-box bounds of section 9 (float64, outward cushions)."""
+
+    def __init__(self, packed: PackedScene, D: float, slack: float, eps: float):
+        self.pm = packed.plane_matrix().astype(np.float64)
+        self.w1 = np.abs(self.pm[:, :3]).sum(axis=1)
+        self.first = packed.polys["first"].astype(np.int64)
+        self.count = packed.polys["count"].astype(np.int64)
+        self.c, self.R, self.ig = _poly_geometry(packed)
+        self.D, self.slack, self.eps = D, slack, eps
+
+    def listed(self, centres: np.ndarray, half: float, cand: np.ndarray) -> np.ndarray:
+        """(m, len(cand)) bool: which candidate polytopes each box (centre, half side ``half`` grown by
+        eps) must list.  U is taken over the candidates only (an upper bound all the same)."""
+        h = half + self.eps
+        cand = np.asarray(cand, np.int64)
+        if len(cand) == 0:
+            return np.zeros((len(centres), 0), bool)
+        rows = np.concatenate([np.arange(self.first[k], self.first[k] + self.count[k]) for k in cand])
+        seg = np.r_[0, np.cumsum(self.count[cand])[:-1]]
+        pm = self.pm[rows]
+        g = centres @ pm[:, :3].T - pm[:, 3]
+        tol = _CUSHION * (1.0 + np.abs(centres).sum(axis=1)[:, None] + np.abs(pm[:, 3])[None, :])
+        UB = np.maximum.reduceat(g + h * self.w1[rows] + tol, seg, axis=1)
+        LB = np.maximum.reduceat(g - h * self.w1[rows] - tol, seg, axis=1)
+        cc, R, ig = self.c[cand], self.R[cand], self.ig[cand]
+        dbox = np.linalg.norm(np.maximum(np.abs(centres[:, None, :] - cc[None]) - h, 0.0), axis=2)
+        lb_ball = (dbox * (1 - _CUSHION) - R) / ig - _CUSHION * (1.0 + dbox + R)
+        LB = np.maximum(LB, lb_ball)
+        thr = np.minimum(UB.min(axis=1), self.D) + self.slack
+        return LB < thr[:, None]
+
+
+def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: float = 1.0, kappa: float = 100.0,
+                target: float | None = None, max_bytes: int | None = None, cost=None, max_depth: int = 4,
                 max_cells: int = 65535) -> SceneIndex:
-    """The grid index of ``packed`` with clearance cap ``cap`` (D, metres) and cell size ``cell``
-    (a power of two, metres); the tightness slack is (17 + log L_max) / kappa."""
+    """The grid index of ``packed`` with clearance cap ``cap`` (D, metres) and top cell size ``cell``
+    (a power of two, metres); the tightness slack is (17 + log L_max) / kappa.
+
+    Refinement: the leaf with the largest ``cost(polys, planes)`` (default a proxy of the cycle model;
+    the budget passes the model itself, depth included) is split into its 8 octants, up to
+    ``max_depth`` levels, until the largest cost is at most ``target`` or the index would exceed
+    ``max_bytes`` (None: no such limit; target None: refine as long as the worst leaf can be split
+    within the bytes)."""
+    import heapq
+
     if cell <= 0 or math.log2(cell) != int(math.log2(cell)):
         raise PolyccError(f"index cell size {cell} must be a power of two (metres)")
     if not cap > 0:
@@ -106,9 +153,9 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
         raise PolyccError("an index needs at least one polytope")
     if packed.n_planes > 65535:
         raise PolyccError("the index stores uint16 first-plane indices: at most 65535 half-planes")
+    cost = cost or (lambda m, planes, depth: _default_cost(m, planes))
     D = float(np.float32(cap))
     slack = (NEGLIGIBLE_NATS + float(packed.log_lmax)) / kappa
-    c, R, ig = _poly_geometry(packed)
     lo, hi = grid_box(packed, D + slack)
     extent = float(np.max(np.abs(np.r_[lo, hi]))) + cell
     eps = lookup_eps(extent)
@@ -118,43 +165,89 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
     if np.any(dims > 65535) or int(np.prod(dims)) > max_cells:
         raise PolyccError(f"index grid {dims.tolist()} at {cell} m exceeds {max_cells} cells; use larger cells")
     nx, ny, nz = (int(v) for v in dims)
-    # cell centres, i fastest
     ii, jj, kk = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
-    idx = np.stack([ii.ravel(order="F"), jj.ravel(order="F"), kk.ravel(order="F")], axis=1)
+    idx = np.stack([ii.ravel(order="F"), jj.ravel(order="F"), kk.ravel(order="F")], axis=1)  # i fastest
     centres = origin + (idx + 0.5) * cell
-    h = 0.5 * cell + eps
-    pm = packed.plane_matrix().astype(np.float64)
-    w1 = np.abs(pm[:, :3]).sum(axis=1)
-    first = packed.polys["first"].astype(np.int64)
-    count = packed.polys["count"].astype(np.int64)
-    m = len(centres)
-    LB = np.empty((m, n))
-    UB = np.empty((m, n))
-    for k in range(n):
-        rows = slice(first[k], first[k] + count[k])
-        g = centres @ pm[rows, :3].T - pm[rows, 3]  # (m, L)
-        tol = _CUSHION * (1.0 + np.abs(centres).sum(axis=1)[:, None] + np.abs(pm[rows, 3])[None, :])
-        UB[:, k] = np.max(g + h * w1[rows] + tol, axis=1)
-        lb_planes = np.max(g - h * w1[rows] - tol, axis=1)
-        dbox = np.linalg.norm(np.maximum(np.abs(centres - c[k]) - h, 0.0), axis=1)
-        lb_ball = (dbox * (1 - _CUSHION) - R[k]) / ig[k] - _CUSHION * (1.0 + dbox + R[k])
-        LB[:, k] = np.maximum(lb_planes, lb_ball)
-    U = UB.min(axis=1)
-    thr = np.minimum(U, D) + slack
-    listed = LB < thr[:, None]
-    # unique lists (cells far from everything share the empty list)
-    keys = np.packbits(listed, axis=1)
-    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    lists = [np.nonzero(np.unpackbits(u)[:n])[0] for u in uniq]
-    order = sorted(range(len(lists)), key=lambda i: (len(lists[i]), lists[i].tolist()))  # empty list first
-    rank = np.empty(len(lists), np.int64)
-    rank[order] = np.arange(len(lists))
-    lists = [lists[i] for i in order]
-    starts = np.r_[0, np.cumsum([len(x) for x in lists])]
-    if starts[-1] > 10**9 or len(lists) > 65534 and False:
-        raise PolyccError(f"index of {starts[-1]} entries / {len(lists)} lists exceeds uint16; use larger cells")
-    entries = np.concatenate(lists).astype(np.uint16) if starts[-1] else np.zeros(0, np.uint16)
-    cell_list = rank[inv].astype(np.uint16)
-    return SceneIndex(np.asarray(origin, np.float32), float(cell), (nx, ny, nz), np.float32(D), cell_list,
-                      starts.astype(np.uint16), entries, first.astype(np.uint16), float(kappa))
+    geo = _Geometry(packed, D, slack, eps)
+    allk = np.arange(n)
+    listed = np.concatenate([geo.listed(centres[i:i + 2048], 0.5 * cell, allk)
+                             for i in range(0, len(centres), 2048)])
+    count = geo.count
+    # nodes: [centre, half, depth, list (polytope indices) or None, children or None]
+    nodes = [[centres[i], 0.5 * cell, 0, np.nonzero(listed[i])[0], None] for i in range(len(centres))]
+    refs: dict[bytes, int] = {}
+
+    def key(lst):
+        return np.asarray(lst, np.int64).tobytes()
+
+    for nd in nodes:
+        refs[key(nd[3])] = refs.get(key(nd[3]), 0) + 1
+    entries = sum(len(np.frombuffer(k, np.int64)) for k in refs)
+
+    def nbytes(n_inner):
+        return index_bytes(len(centres), n_inner, len(refs), entries, n)
+
+    def node_cost(nd):
+        return float(cost(len(nd[3]), int(count[nd[3]].sum()), nd[2]))
+
+    heap = [(-node_cost(nd), i) for i, nd in enumerate(nodes) if len(nd[3])]
+    heapq.heapify(heap)
+    n_inner = 0
+    offs = np.array([[(o >> b) & 1 for b in range(3)] for o in range(8)], np.float64) - 0.5
+    while heap:
+        c0, i = heap[0]
+        nd = nodes[i]
+        if target is not None and -c0 <= target:
+            break
+        if nd[2] >= max_depth:
+            break  # the worst leaf cannot be split: the worst case stays
+        half = nd[1] / 2
+        kc = nd[0] + offs * nd[1]  # child centres (octant o: bit set = upper half)
+        sub = geo.listed(kc, half, nd[3])
+        kids = [nd[3][sub[o]] for o in range(8)]
+        # bytes after the split
+        new_refs = dict(refs)
+        new_entries = entries
+        k0 = key(nd[3])
+        new_refs[k0] -= 1
+        if new_refs[k0] == 0:
+            del new_refs[k0]
+            new_entries -= len(nd[3])
+        for kl in kids:
+            kk_ = key(kl)
+            if kk_ not in new_refs:
+                new_entries += len(kl)
+            new_refs[kk_] = new_refs.get(kk_, 0) + 1
+        if len(new_refs) + n_inner + 1 > 65535 or new_entries > 65535 or (
+                max_bytes is not None and index_bytes(len(centres), n_inner + 1, len(new_refs), new_entries, n)
+                > max_bytes):
+            break
+        heapq.heappop(heap)
+        refs, entries = new_refs, new_entries
+        n_inner += 1
+        nd[4] = []
+        for o in range(8):
+            child = [kc[o], half, nd[2] + 1, kids[o], None]
+            nd[4].append(len(nodes))
+            nodes.append(child)
+            if len(kids[o]):
+                heapq.heappush(heap, (-node_cost(child), len(nodes) - 1))
+        nd[3] = None
+    # ids: lists first (empty list first, then by length), internal nodes after them
+    lists = sorted((np.frombuffer(k, np.int64) for k in refs), key=lambda x: (len(x), x.tolist()))
+    lid = {key(x): j for j, x in enumerate(lists)}
+    inner = [i for i, nd in enumerate(nodes) if nd[4] is not None]
+    nid = {i: len(lists) + j for j, i in enumerate(inner)}
+
+    def ref(i):
+        nd = nodes[i]
+        return nid[i] if nd[4] is not None else lid[key(nd[3])]
+
+    cell_list = np.array([ref(i) for i in range(len(centres))], np.uint16)
+    children = np.array([ref(c) for i in inner for c in nodes[i][4]], np.uint16)
+    starts = np.r_[0, np.cumsum([len(x) for x in lists])].astype(np.uint16)
+    ent = np.concatenate(lists).astype(np.uint16) if len(lists) and starts[-1] else np.zeros(0, np.uint16)
+    out = SceneIndex(np.asarray(origin, np.float32), float(cell), (nx, ny, nz), np.float32(D), cell_list,
+                     starts, ent, geo.first.astype(np.uint16), float(kappa), children)
+    assert out.nbytes() == nbytes(n_inner)
+    return out

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from fractions import Fraction
 from functools import cached_property
 
@@ -30,7 +30,7 @@ PLANE_BYTES = 4
 POLY_BYTES = 16
 CLUSTER_BYTES = 32
 ROOT_BYTES = 52  # polycc_scene_t on a 32-bit target: 8 words + 5 pointers (the last: the index, or NULL)
-INDEX_BYTES = 48  # polycc_index_t: 5 floats, 4 uint16, 1 uint32, 4 pointers
+INDEX_BYTES = 56  # polycc_index_t: 5 floats, 4 uint16, 2 uint32, 5 pointers
 MAX_POLY_PLANES = 256
 MAX_PLANES = 65535
 MAX_POLYS = 65535  # uint16 polytope index in the cluster records
@@ -57,9 +57,9 @@ assert (NORMAL_DTYPE.itemsize, PLANE_DTYPE.itemsize, POLY_DTYPE.itemsize, CLUSTE
     NORMAL_BYTES, PLANE_BYTES, POLY_BYTES, CLUSTER_BYTES)
 assert HEADER.size + 20 == ROOT_BYTES
 # polycc_index_t without its pointers: origin, 1/s, cap D, dims, lists, entries
-INDEX_HEADER = struct.Struct("<fffffHHHHI")
-INDEX_DTYPE_FIELDS = ("ox", "oy", "oz", "inv_cell", "cap", "nx", "ny", "nz", "n_lists", "n_entries")
-assert INDEX_HEADER.size + 16 == INDEX_BYTES
+INDEX_HEADER = struct.Struct("<fffffHHHHII")
+INDEX_DTYPE_FIELDS = ("ox", "oy", "oz", "inv_cell", "cap", "nx", "ny", "nz", "n_lists", "n_entries", "n_inner")
+assert INDEX_HEADER.size + 20 == INDEX_BYTES
 
 _UNIT_TOL = 1e-5  # |n| must be 1 within this before snapping
 _U64 = 2.0**-53
@@ -70,10 +70,10 @@ def _pad4(n_u16: int) -> int:
     return 4 * ((2 * n_u16 + 3) // 4)
 
 
-def index_bytes(n_cells: int, n_lists: int, n_entries: int, n_polys: int) -> int:
-    """Exact flash bytes of a spatial index (polycc_index_t and its four uint16 arrays, each padded
-    to 4 bytes): ``48 + 2 n_cells + 2 (n_lists + 1) + 2 n_entries + 2 n_polys`` (+ padding)."""
-    return INDEX_BYTES + _pad4(n_cells) + _pad4(n_lists + 1) + _pad4(n_entries) + _pad4(n_polys)
+def index_bytes(n_cells: int, n_inner: int, n_lists: int, n_entries: int, n_polys: int) -> int:
+    """Exact flash bytes of a spatial index (polycc_index_t and its five uint16 arrays, each padded
+    to 4 bytes): ``56 + 2 n_cells + 16 n_inner + 2 (n_lists + 1) + 2 n_entries + 2 n_polys`` (+ padding)."""
+    return INDEX_BYTES + _pad4(n_cells) + _pad4(8 * n_inner) + _pad4(n_lists + 1) + _pad4(n_entries) + _pad4(n_polys)
 
 
 def layout_bytes(n_polys: int, n_planes: int, n_clusters: int, n_normals: int, index: int = 0) -> int:
@@ -113,11 +113,47 @@ class SceneIndex:
     cell: float  # s, a power of two
     dims: tuple[int, int, int]
     cap: np.float32  # D
-    cell_list: np.ndarray  # uint16 (n_cells,), list id of cell i + nx (j + ny k)
+    cell_list: np.ndarray  # uint16 (n_cells,), node of cell i + nx (j + ny k): < n_lists a list id, else inner
     list_start: np.ndarray  # uint16 (n_lists + 1,)
     entries: np.ndarray  # uint16 polytope indices
     poly_first: np.ndarray  # uint16 (n_polys,), first plane of each polytope
     kappa: float | None = None  # the build kappa of the tightness slack (17 + log L) / kappa (not stored)
+    children: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))  # uint16 (8 n_inner,)
+
+    @property
+    def n_inner(self) -> int:
+        return len(self.children) // 8
+
+    def leaves(self) -> list[tuple[int, int]]:
+        """(list id, depth) of every leaf reachable from a cell (depth 0: the cell itself)."""
+        out, todo = set(), [(int(v), 0) for v in np.unique(self.cell_list)]
+        seen = set()
+        while todo:
+            v, d = todo.pop()
+            if v < self.n_lists:
+                out.add((v, d))
+            elif (v, d) not in seen:
+                seen.add((v, d))
+                b = v - self.n_lists
+                todo += [(int(c), d + 1) for c in self.children[8 * b : 8 * b + 8]]
+        return sorted(out)
+
+    def lookup(self, cell: np.ndarray, t: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(list id, depth) for cells (>= 0) and the float32 cell coordinates t (3 arrays) the kernel
+        computed: the descent of polycc_barrier (t doubled, exactly, per level; octant from the parity)."""
+        v = self.cell_list.astype(np.int64)[cell]
+        depth = np.zeros(len(cell), np.int64)
+        s = [np.asarray(x, np.float32).copy() for x in t]
+        nl = self.n_lists
+        inner = v >= nl
+        while inner.any():
+            for a in s:
+                a[inner] = a[inner] * np.float32(2.0)
+            o = sum(((s[b][inner].astype(np.int64) & 1) << b) for b in range(3))
+            v[inner] = self.children.astype(np.int64)[8 * (v[inner] - nl) + o]
+            depth[inner] += 1
+            inner = v >= nl
+        return v, depth
 
     @property
     def n_cells(self) -> int:
@@ -128,25 +164,27 @@ class SceneIndex:
         return len(self.list_start) - 1
 
     def nbytes(self) -> int:
-        return index_bytes(self.n_cells, self.n_lists, len(self.entries), len(self.poly_first))
+        return index_bytes(self.n_cells, self.n_inner, self.n_lists, len(self.entries), len(self.poly_first))
 
     def lists(self) -> list[np.ndarray]:
         return [self.entries[int(a):int(b)] for a, b in zip(self.list_start[:-1], self.list_start[1:])]
 
     def arrays(self) -> tuple[np.ndarray, ...]:
-        """The four stored uint16 arrays, in image order."""
-        return self.cell_list, self.list_start, self.entries, self.poly_first
+        """The five stored uint16 arrays, in image order."""
+        return self.cell_list, self.children, self.list_start, self.entries, self.poly_first
 
     def list_work(self, counts: np.ndarray) -> np.ndarray:
         """(n_lists, 2): polytopes and half-planes of each list (``counts``: half-planes per polytope)."""
         counts = np.asarray(counts, np.int64)
-        return np.array([[len(x), int(counts[x.astype(np.int64)].sum())] for x in self.lists()], np.int64).reshape(-1, 2)
+        rows = [[len(x), int(counts[x.astype(np.int64)].sum())] for x in self.lists()]
+        return np.array(rows, np.int64).reshape(-1, 2)
 
     def record(self) -> dict:
         """The values of the C struct polycc_index_t (without its pointers)."""
         return {"ox": np.float32(self.origin[0]), "oy": np.float32(self.origin[1]), "oz": np.float32(self.origin[2]),
                 "inv_cell": np.float32(1.0 / self.cell), "cap": np.float32(self.cap), "nx": self.dims[0],
-                "ny": self.dims[1], "nz": self.dims[2], "n_lists": self.n_lists, "n_entries": len(self.entries)}
+                "ny": self.dims[1], "nz": self.dims[2], "n_lists": self.n_lists, "n_entries": len(self.entries),
+                "n_inner": self.n_inner}
 
 
 @dataclass(frozen=True)
@@ -241,12 +279,10 @@ class PackedScene:
         return PackedScene(self.normals[:0], self.planes[:0], self.polys_raw[:0], self.clusters[:0], self.quantum,
                            self.coord_bound, self.log_lmax)
 
-    def index_cell(self, p: np.ndarray) -> np.ndarray:
-        """Cell number the kernel looks up for each state of p (n, 3) (float32 ops as in the C), -1
-        outside the grid box or without an index."""
+    def index_leaf(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(list id, depth) the kernel looks up for each state of p (n, 3) (float32 ops as in the C);
+        list id -1 outside the grid box B (the kernel returns the cap D there)."""
         p = np.asarray(p, np.float32).reshape(-1, 3)
-        if self.index is None:
-            return np.full(len(p), -1, np.int64)
         r = self.index.record()
         with np.errstate(all="ignore"):
             t = [(p[:, i] - r[o]) * r["inv_cell"] for i, o in enumerate(("ox", "oy", "oz"))]
@@ -255,7 +291,12 @@ class PackedScene:
                 inside &= (ti >= np.float32(0)) & (ti < np.float32(r[d]))
             ci = [np.where(inside, ti, 0).astype(np.int64) for ti in t]
         cell = ci[0] + r["nx"] * (ci[1] + r["ny"] * ci[2])
-        return np.where(inside, cell, -1)
+        out = np.full(len(p), -1, np.int64)
+        depth = np.zeros(len(p), np.int64)
+        w = np.nonzero(inside)[0]
+        if len(w):
+            out[w], depth[w] = self.index.lookup(cell[w], [ti[w] for ti in t])
+        return out, depth
 
 
 def decode_polys(raw: np.ndarray, clusters: np.ndarray, quantum) -> np.ndarray:
@@ -296,11 +337,12 @@ def scene_from_bytes(blob: bytes) -> PackedScene:
         r = dict(zip(INDEX_DTYPE_FIELDS, INDEX_HEADER.unpack_from(blob, off)))
         off += INDEX_HEADER.size
         arrs = []
-        for m in (r["nx"] * r["ny"] * r["nz"], r["n_lists"] + 1, r["n_entries"], n_polys):
+        for m in (r["nx"] * r["ny"] * r["nz"], 8 * r["n_inner"], r["n_lists"] + 1, r["n_entries"], n_polys):
             arrs.append(np.frombuffer(blob, "<u2", m, off).copy())
             off += _pad4(m)
         index = SceneIndex(np.array([r["ox"], r["oy"], r["oz"]], np.float32), 1.0 / float(np.float32(r["inv_cell"])),
-                           (r["nx"], r["ny"], r["nz"]), np.float32(r["cap"]), *arrs)
+                           (r["nx"], r["ny"], r["nz"]), np.float32(r["cap"]), arrs[0], arrs[2], arrs[3], arrs[4],
+                           children=arrs[1])
     return PackedScene(normals, planes, polys, clusters, np.float32(q), np.float32(cb), np.float32(ll), index=index)
 
 

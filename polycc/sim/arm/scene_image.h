@@ -1,7 +1,7 @@
 /*
  * scene_image.h -- the ARM test harnesses' reader of the flat scene image (scene.bin) written by
  * polycc/onboard/layout.py PackedScene.to_bytes(): 8 header words, clusters, polys, planes, normals,
- * then optionally the spatial index (8 header words and four uint16 arrays, each padded to 4 bytes).
+ * then optionally the spatial index (9 header words and five uint16 arrays, each padded to 4 bytes).
  * Shared by main.c, shield_main.c and swarm_main.c.  The image stays in `buf`; nothing is copied.
  */
 #ifndef POLYCC_SCENE_IMAGE_H
@@ -46,11 +46,13 @@ static int polycc_scene_from_image(polycc_scene_t *scene, polycc_index_t *ix, co
     if (base > end) {
         return 1;
     }
-    if (base + 32 <= end) {
-        memcpy(ix, base, 32); /* ox, oy, oz, inv_cell, cap, nx, ny, nz, n_lists, n_entries */
-        base += 32;
+    if (base + 36 <= end) {
+        memcpy(ix, base, 36); /* ox, oy, oz, inv_cell, cap, nx, ny, nz, n_lists, n_entries, n_inner */
+        base += 36;
         ix->cell_list = (const uint16_t *)(const void *)base;
         base += POLYCC_IMAGE_PAD4((uint32_t)ix->nx * ix->ny * ix->nz);
+        ix->children = (const uint16_t *)(const void *)base;
+        base += POLYCC_IMAGE_PAD4(8u * ix->n_inner);
         ix->list_start = (const uint16_t *)(const void *)base;
         base += POLYCC_IMAGE_PAD4((uint32_t)ix->n_lists + 1u);
         ix->entries = (const uint16_t *)(const void *)base;
