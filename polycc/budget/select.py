@@ -32,13 +32,13 @@ from typing import Callable
 
 import numpy as np
 
-from polycc.budget.cycle_model import indexed_cycles, worst_cycles
+from polycc.budget.cycle_model import _leaf_cost, worst_cycles
 from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
 from polycc.geometry.union_volume import in_voxels, union_waste
-from polycc.onboard.index import build_index
+from polycc.onboard.index import build_index, grid_box, index_slack
 from polycc.onboard.layout import (
     DEFAULT_NORMAL_GRID,
     MAX_POLY_PLANES,
@@ -194,9 +194,12 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
         packed = pack_scene(red[0], verts, max_normals=max_normals, record_cache=caches.setdefault("records", {}))
         over_planes = packed.n_planes - min(caps.values())
         if budget.clearance_cap is not None:
-            ix = choose_index(packed, budget, budget.flash_bytes - packed.flash_bytes())
+            ix = choose_index(packed, budget, budget.flash_bytes - packed.flash_bytes(),
+                              cache=caches.setdefault("grid_box", {}))
             if ix is None:  # no index fits beside these planes: make room for the coarsest one
-                coarse = build_index(packed, budget.clearance_cap, max(INDEX_CELLS), budget.kappa, max_bytes=0)
+                coarse = build_index(packed, budget.clearance_cap, max(INDEX_CELLS), budget.kappa, max_bytes=0,
+                                     box=grid_box(packed, float(np.float32(budget.clearance_cap))
+                                                  + index_slack(packed, budget.kappa), caches["grid_box"]))
                 over_bytes = packed.flash_bytes() + coarse.nbytes() - budget.flash_bytes
                 cap -= max(-(-over_bytes // PLANE_BYTES), 1)
                 continue
@@ -209,7 +212,7 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     else:
         return None
     if budget.clearance_cap is not None and budget.rate_cycles is not None and \
-            worst_cycles(packed) > budget.rate_cycles:
+            worst_cycles(packed, budget.kappa) > budget.rate_cycles:
         return None  # its certified worst case misses --rate-hz / --cpu-share
     # The byte model is exact and the table can only shrink (reduction removes planes, merging
     # removes duplicates, unused entries are dropped).
@@ -242,25 +245,24 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
 INDEX_CELLS = (0.5, 1.0, 2.0)  # top cell sizes of the index tried, metres (powers of two)
 
 
-def _leaf_cost(polys, planes, depth):
-    return indexed_cycles(polys, planes, depth)
-
-
-def choose_index(packed: PackedScene, budget: Budget, max_bytes: int, cells=INDEX_CELLS) -> SceneIndex | None:
+def choose_index(packed: PackedScene, budget: Budget, max_bytes: int, cells=INDEX_CELLS,
+                 cache: dict | None = None) -> SceneIndex | None:
     """The spatial index for ``packed`` (cap D = budget.clearance_cap), refined until its certified worst
     case meets the rate budget (or as far as ``max_bytes`` allows): among the top cell sizes, the one that
     meets the rate with the fewest bytes, else the one with the smallest worst case; None if no index
     fits ``max_bytes``."""
     best = None
+    D = float(np.float32(budget.clearance_cap))
+    box = grid_box(packed, D + index_slack(packed, budget.kappa), cache)
     for s in cells:
         try:
             ix = build_index(packed, budget.clearance_cap, s, budget.kappa, target=budget.rate_cycles,
-                             max_bytes=max_bytes, cost=_leaf_cost)
+                             max_bytes=max_bytes, cost=_leaf_cost, box=box)
         except PolyccError:
             continue
         if ix.nbytes() > max_bytes:
             continue
-        w = worst_cycles(packed.with_index(ix))
+        w = worst_cycles(packed.with_index(ix), budget.kappa)
         meets = budget.rate_cycles is None or w <= budget.rate_cycles
         key = (not meets, ix.nbytes() if meets else w, w)
         if best is None or key < best[0]:

@@ -96,6 +96,7 @@ def _softmax_poly(H: np.ndarray, px, py, pz, kappa, neg_cut, abort_at):
     alive = ~(m >= abort_at)
     thr = m + neg_cut
     n = len(px)
+    n_exp = np.zeros(n, np.int64)  # planes that took the exp path (statistics only)
     S = np.ones(n, F)
     A = np.zeros(n, F)
     N = H[:, 0, :3].copy()
@@ -105,6 +106,7 @@ def _softmax_poly(H: np.ndarray, px, py, pz, kappa, neg_cut, abort_at):
         sel = alive & (gl > thr)
         if not sel.any():
             continue
+        n_exp += sel
         new = sel & (gl > m)
         drop = new & (gl >= abort_at)
         alive &= ~drop
@@ -134,7 +136,7 @@ def _softmax_poly(H: np.ndarray, px, py, pz, kappa, neg_cut, abort_at):
     q = A * invS
     a = m + q
     ga = (N + kappa * (M - q[:, None] * N)) * invS[:, None]
-    return alive, a, ga
+    return alive, a, ga, n_exp
 
 
 def barrier(scene: PackedScene, params: Params, p: np.ndarray, *, cull: bool = True, stats: dict | None = None
@@ -143,8 +145,9 @@ def barrier(scene: PackedScene, params: Params, p: np.ndarray, *, cull: bool = T
 
     ``cull=False`` (not in the C) evaluates every polytope fully: the tests use it to check
     that culling changes psi by less than the bound of docs/barrier.md.  If ``stats`` is a dict,
-    it receives per state ``"evaluated"`` (polytopes in the soft-min) and ``"entered"``
-    (polytopes that passed the sphere tests, some then dropped by their lead plane)."""
+    it receives per state ``"evaluated"`` (polytopes in the soft-min), ``"entered"``
+    (polytopes that passed the sphere tests, some then dropped by their lead plane) and
+    ``"exp_planes"`` (half-planes that took the soft-max's exp path: a new maximum or a term)."""
     p = np.ascontiguousarray(np.asarray(p, dtype=F).reshape(-1, 3))
     n = p.shape[0]
     psi = np.zeros(n, F)
@@ -155,12 +158,14 @@ def barrier(scene: PackedScene, params: Params, p: np.ndarray, *, cull: bool = T
         flags[~valid] = FLAG_INVALID
         vi = np.nonzero(valid)[0]
         if len(vi):
-            psi[vi], grad[vi], bad, nev, entered = _barrier_valid(scene, params, p[vi], cull)
+            psi[vi], grad[vi], bad, nev, (entered, exp_planes) = _barrier_valid(scene, params, p[vi], cull)
             if stats is not None:
                 stats["evaluated"] = np.zeros(n, np.int64)
                 stats["evaluated"][vi] = nev
                 stats["entered"] = np.zeros(n, np.int64)
                 stats["entered"][vi] = entered
+                stats["exp_planes"] = np.zeros(n, np.int64)
+                stats["exp_planes"][vi] = exp_planes
             flags[vi[bad]] = FLAG_INVALID
     return psi, grad, flags
 
@@ -191,6 +196,7 @@ def _barrier_valid(scene: PackedScene, params: Params, p: np.ndarray, cull: bool
     G = np.zeros((n, 3), F)
     nev = np.zeros(n, np.int64)
     entered = np.zeros(n, np.int64)  # polytopes that passed the sphere tests (statistics only)
+    exp_planes = np.zeros(n, np.int64)  # half-planes on the soft-max's exp path (statistics only)
 
     def threshold(idx):
         lim = np.where((nev[idx] != 0) & (cur[idx] < a_ref[idx]), cur[idx], a_ref[idx])
@@ -213,7 +219,8 @@ def _barrier_valid(scene: PackedScene, params: Params, p: np.ndarray, cull: bool
         ux, uy, uz = px[i] - F(P["cx"]), py[i] - F(P["cy"]), pz[i] - F(P["cz"])
         octant = np.signbit(ux) * 1 + np.signbit(uy) * 2 + np.signbit(uz) * 4
         H = h[_visit_order(P["lead"], len(h))[octant]]
-        alive, a, ga = _softmax_poly(H, px[i], py[i], pz[i], kappa, neg_cut, T)
+        alive, a, ga, n_exp = _softmax_poly(H, px[i], py[i], pz[i], kappa, neg_cut, T)
+        exp_planes[i] += n_exp
         i, a, ga = i[alive], a[alive], ga[alive]
         _softmin_update(i, a, ga, kappa, cur, S2, G, nev)
 
@@ -256,7 +263,7 @@ def _barrier_valid(scene: PackedScene, params: Params, p: np.ndarray, cull: bool
     bad = ~(_finite(psi) & np.all(_finite(grad), axis=1))
     psi[bad] = ZERO
     grad[bad] = ZERO
-    return psi, grad, bad, nev, entered
+    return psi, grad, bad, nev, (entered, exp_planes)
 
 
 def _softmin_update(i, a, ga, kappa, cur, S2, G, nev) -> None:

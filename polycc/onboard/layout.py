@@ -119,6 +119,8 @@ class SceneIndex:
     poly_first: np.ndarray  # uint16 (n_polys,), first plane of each polytope
     kappa: float | None = None  # the build kappa of the tightness slack (17 + log L) / kappa (not stored)
     children: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))  # uint16 (8 n_inner,)
+    # build-time only (not stored): per non-empty leaf [list id, depth, polytopes, planes, expensive planes]
+    work: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def n_inner(self) -> int:

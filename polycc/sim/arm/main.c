@@ -15,7 +15,7 @@
 #include "scene_image.h"
 #include "semihost.h"
 
-#define SCENE_MAX (96u * 1024u)
+#define SCENE_MAX (112u * 1024u)
 #define CHUNK 64u
 
 static uint32_t scene_buf[SCENE_MAX / 4u];
