@@ -127,7 +127,8 @@ def estimate_us(packed: PackedScene, kappa: float = 100.0, samples: int = 400, s
         free[:] = True
     typ = state_cycles(packed, params, x[free])
     return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6),
-            "worst_us": float(worst_cycles(packed, kappa) / CPU_HZ * 1e6), "worst_is_certified": packed.index is not None}
+            "worst_us": float(worst_cycles(packed, kappa) / CPU_HZ * 1e6),
+            "worst_is_certified": packed.index is not None}
 
 
 # The shield's plan (firmware_app/src/polycc_controller.[ch], docs/barrier.md section 8): one

@@ -113,6 +113,8 @@ class Candidate:
     conservativeness: float
     conservativeness_ci: float
     caps: dict = field(default_factory=dict)
+    worst_cycles: float = 0.0  # certified (index) or every-polytope estimate, cycles
+    meets_rate: bool = True  # the certified worst case fits --rate-hz / --cpu-share
 
     @property
     def n_planes(self) -> int:
@@ -211,9 +213,8 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
         cap -= max(over_planes, -(-over_bytes // PLANE_BYTES), 1)
     else:
         return None
-    if budget.clearance_cap is not None and budget.rate_cycles is not None and \
-            worst_cycles(packed, budget.kappa) > budget.rate_cycles:
-        return None  # its certified worst case misses --rate-hz / --cpu-share
+    worst = worst_cycles(packed, budget.kappa)
+    meets = not (budget.clearance_cap is not None and budget.rate_cycles is not None and worst > budget.rate_cycles)
     # The byte model is exact and the table can only shrink (reduction removes planes, merging
     # removes duplicates, unused entries are dropped).
     assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals) + (
@@ -239,7 +240,8 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     # estimated directly, which is far less noisy than Vol(union) - Vol(V+)
     _, _, waste, wci = union_waste(stored, boxes, caches["occupied"], samples=mc_samples, seed=seed)
     return Candidate(n, max_normals, packed, before, normals_before, dropped, before - dropped - packed.n_planes,
-                     occupied_volume + waste, wci, 1.0 + waste / occupied_volume, wci / occupied_volume, caps)
+                     occupied_volume + waste, wci, 1.0 + waste / occupied_volume, wci / occupied_volume, caps,
+                     worst, meets)
 
 
 INDEX_CELLS = (0.5, 1.0, 2.0)  # top cell sizes of the index tried, metres (powers of two)
@@ -334,19 +336,38 @@ def select(
     done = _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress)
     if not done:
         raise PolyccError(impossible_budget_message(family, budget))
+    # No candidate's certified worst case meets the rate: halve n (fewer polytopes, fewer per cell)
+    # a few times; if none does, keep the fastest candidate and say so in the binding budget.
+    for _ in range(5):
+        if any(c.meets_rate for c in done):
+            break
+        n = max(1, min(c.n for c in done) // 2)
+        more = _realise_all(family, budget, [(n, None)], normals, occ_vol, mc_samples, None)
+        done = sorted(done + more, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+        if n == 1:
+            break
+    if not any(c.meets_rate for c in done):
+        best = min(done, key=lambda c: (c.worst_cycles, c.conservativeness))
+        return best, done, (f"rate (missed: no candidate's certified worst case fits --rate-hz/--cpu-share; the "
+                            f"fastest, {best.worst_cycles / 168:.0f} us, is taken)")
+    done_all, done = done, [c for c in done if c.meets_rate]
     # least conservative; among candidates within the Monte Carlo 95 % half-width of it
     # (statistically tied) the fewest polytopes, which is the fastest on board
     low = min(done, key=lambda c: (c.conservativeness, -c.n))
     best = min((c for c in done if c.conservativeness <= low.conservativeness + low.conservativeness_ci),
                key=lambda c: (c.n, c.conservativeness))
-    return best, done, binding_text(family, best, done)
+    return best, done_all, binding_text(family, best, done, done_all)
 
 
-def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate]) -> str:
+def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate],
+                 done_all: list[Candidate] | None = None) -> str:
     """Which budget stopped the choice: its name first ('flash', 'halfplanes', 'rate' or 'none'),
     then why, for the summary."""
     if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
         return "none (the whole sub-cover fits)"
+    slower = [c for c in (done_all or []) if not c.meets_rate]
+    if slower and min(c.conservativeness for c in slower) < best.conservativeness - best.conservativeness_ci:
+        return "rate (less conservative candidates miss the certified worst case budget)"
     tightest = min(best.caps, key=best.caps.get)
     slack = best.caps[tightest] - best.n_planes  # half-planes still free under that budget
     full = slack < max(8, 2 * best.n_planes / best.n)  # not even two more average polytopes fit

@@ -205,7 +205,6 @@ def test_refinement_lowers_the_worst_case():
 
 
 @pytest.mark.arm
-@pytest.mark.slow
 def test_arm_cycles_at_the_worst_leaf_within_certified():
     """Cortex-M4 model (unicorn + timing table): at positions in the leaf with the largest certified
     figure (corners, centre, random points), and on a shell scene where every listed polytope is
