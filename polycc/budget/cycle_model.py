@@ -106,7 +106,9 @@ def state_cycles(packed: PackedScene, params, X: np.ndarray) -> np.ndarray:
     mean_planes = packed.n_planes / max(packed.n_polys, 1)
     if packed.index is not None:
         _, depth = packed.index_leaf(X)
-        return indexed_cycles(0, 0, depth) + cycles(0, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
+        # FIXED once (in indexed_cycles), plus the work counted by the reference
+        work = cycles(0, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes) - FIXED_CYCLES
+        return indexed_cycles(0, 0, depth) + work
     return cycles(packed.n_clusters, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
 
 

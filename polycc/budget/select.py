@@ -346,6 +346,24 @@ def select(
         done = sorted(done + more, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
         if n == 1:
             break
+    if not any(c.meets_rate for c in done) and budget.rate_cycles is not None:
+        # still none: the fewest polytopes with their half-planes capped so that even with every plane on
+        # the exp path the figure fits (outward reduction drops planes)
+        from dataclasses import replace
+
+        from polycc.budget.cycle_model import PER_EXP_PLANE_CYCLES, PER_PLANE_CYCLES, indexed_cycles
+
+        for n in sorted({min(c.n for c in done), 1}):
+            room = budget.rate_cycles - float(indexed_cycles(n, 0, 4, 0))
+            cap = int(room // (PER_PLANE_CYCLES + PER_EXP_PLANE_CYCLES))
+            if cap < MIN_PLANES * n:
+                continue
+            tight = replace(budget, max_halfplanes=min(cap, budget.max_halfplanes or cap))
+            more = _realise_all(family, tight, [(n, None)], normals, occ_vol, mc_samples, None)
+            done = sorted(done + [replace(c, meets_rate=c.worst_cycles <= budget.rate_cycles) for c in more],
+                          key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+            if any(c.meets_rate for c in done):
+                break
     if not any(c.meets_rate for c in done):
         best = min(done, key=lambda c: (c.worst_cycles, c.conservativeness))
         return best, done, (f"rate (missed: no candidate's certified worst case fits --rate-hz/--cpu-share; the "
