@@ -27,6 +27,7 @@ from polycc.occupancy.floaters import floater_loss, floater_text, loss_record
 from polycc.occupancy.grid import OccupancyGrid
 from polycc.occupancy.triangles import merge_triangles
 from polycc.onboard.app import app_rate_hz
+from polycc.onboard.index import DEFAULT_CLEARANCE_CAP
 from polycc.onboard.layout import stored_vertices
 from polycc.parallel import Runner, make_runner
 from polycc.report.plots import write_report
@@ -45,8 +46,9 @@ class BuildOptions:
 
     flash_kb: float = 64.0  # KiB of generated constant data
     max_halfplanes: int | None = None
-    rate_hz: float | None = None  # Hz; with cpu_share, a worst-case compute budget
+    rate_hz: float | None = cycle_model.DEFAULT_RATE_HZ  # Hz; with cpu_share, bounds the certified worst case
     cpu_share: float = cycle_model.DEFAULT_CPU_SHARE
+    clearance_cap: float | None = DEFAULT_CLEARANCE_CAP  # D, m, of the spatial index (None: no index)
     kappa: float = 100.0  # 1/m
     neighborhood: int = 1  # cluster radius b, voxels
     boxes: bool = True
@@ -57,7 +59,7 @@ class BuildOptions:
 
     def budget(self) -> Budget:
         rate = cycle_model.cycle_budget(self.rate_hz, self.cpu_share) if self.rate_hz is not None else None
-        return Budget(int(self.flash_kb * 1024), self.max_halfplanes, rate)
+        return Budget(int(self.flash_kb * 1024), self.max_halfplanes, rate, self.clearance_cap, self.kappa)
 
 
 @dataclass
@@ -218,6 +220,14 @@ def _meta(scene_path, scene, occ, family, best, cands, binding, us, settings, op
         "max_halfplanes": min(best.caps.values()), "binding_budget": binding,
         "conservativeness": best.conservativeness, "conservativeness_ci95": best.conservativeness_ci,
         "union_volume_m3": best.union_volume, "modelled_us": us,
+        "onboard": {"worst_us": us["worst_us"], "typical_us": us["typical_us"],
+                    "worst_is_certified": best.packed.index is not None,
+                    "worst_cycles": worst, "clearance_cap_m": None if best.packed.index is None else
+                    float(best.packed.index.cap),
+                    "index": None if best.packed.index is None else {
+                        "cell_m": best.packed.index.cell, "dims": list(best.packed.index.dims),
+                        "lists": best.packed.index.n_lists, "entries": len(best.packed.index.entries),
+                        "bytes": best.packed.index.nbytes()}},
         "app_rate_hz": app_rate_hz(worst),  # the rate polycc_app.c runs this header at (None: refused)
         "floater_filter": occ.stats.get("floater_filter"),
         "dropped_isolated": [{"splats": g.count, "centroid_m": g.centroid.tolist(), "lo_m": g.lo.tolist(),

@@ -264,6 +264,12 @@ static int polycc_quantum_ok(float q)
     return (b & 0x007fffffu) == 0u && e >= 107u && e <= 131u;
 }
 
+/* |v| <= POLYCC_POS_MAX for a finite v (false for NaN and +-Inf). */
+static int polycc_coord_ok(float v)
+{
+    return v >= -POLYCC_POS_MAX && v <= POLYCC_POS_MAX;
+}
+
 static int polycc_scene_ok(const polycc_scene_t *sc)
 {
     return sc != NULL && sc->format == POLYCC_SCENE_FORMAT &&
@@ -271,14 +277,13 @@ static int polycc_scene_ok(const polycc_scene_t *sc)
            (sc->n_clusters == 0u ||
             (sc->clusters != NULL && sc->polys != NULL && sc->planes != NULL && sc->normals != NULL)) &&
            polycc_quantum_ok(sc->quantum) && sc->coord_bound >= 0.0f && sc->coord_bound <= 1.0e6f &&
-           sc->log_lmax >= 0.0f && sc->log_lmax <= 12.0f;
+           sc->log_lmax >= 0.0f && sc->log_lmax <= 12.0f &&
+           (sc->index == NULL ||
+            (sc->n_polys > 0u && sc->index->cap > 0.0f && sc->index->cap <= 1.0e6f && sc->index->inv_cell > 0.0f &&
+             sc->index->inv_cell <= 1.0e6f && polycc_coord_ok(sc->index->ox) && polycc_coord_ok(sc->index->oy) &&
+             polycc_coord_ok(sc->index->oz) && sc->index->nx > 0u && sc->index->ny > 0u && sc->index->nz > 0u));
 }
 
-/* |v| <= POLYCC_POS_MAX for a finite v (false for NaN and +-Inf). */
-static int polycc_coord_ok(float v)
-{
-    return v >= -POLYCC_POS_MAX && v <= POLYCC_POS_MAX;
-}
 
 /* Culling test with d2 = |p - c|^2, Tp = max(T, 0): returns 1 when |p - c| > r_out + Tp * inv_gamma,
  * which proves max_l g_kl(p) > T for every polytope k the record bounds (docs/barrier.md,
@@ -289,12 +294,81 @@ POLYCC_INLINE int polycc_culled(float r_out, float inv_gamma, float d2, float Tp
     return d2 > rad * rad;
 }
 
+/* Online soft-min state of polycc_barrier (pass 2). */
+typedef struct polycc_smin {
+    float cur, S2, G[3], a_ref, slack, T, Tp;
+    uint32_t nev;
+} polycc_smin_t;
+
+/* Pass 2 for one polytope (record P, planes from base): cull by its sphere, Boltzmann soft-max,
+ * online soft-min update.  Out of line: shared by the cluster walk and the index walk. */
+static POLYCC_NOINLINE void polycc_visit(const polycc_poly_t *P, const polycc_plane_t *base, const polycc_normal_t *nrm,
+                                         float q, float q_out, const float p[3], float kappa, float neg_cut,
+                                         polycc_smin_t *s)
+{
+    float a, ga[3], u[3];
+    uint32_t oct, meta = P->meta, cnt = POLYCC_META_COUNT(meta);
+    float px = p[0], py = p[1], pz = p[2];
+    if (polycc_culled((float)P->r_out * q_out, (float)P->inv_gamma * POLYCC_INV_GAMMA_UNIT,
+                      polycc_dist2u(P, q, px, py, pz, u), s->Tp)) {
+        return; /* max_l g_kl >= gamma (|u| - r_out) > T */
+    }
+    /* octant of u from the sign bits (-0.0 counts as negative; only picks the lead plane) */
+    oct = (polycc_bits(u[0]) >> 31) | ((polycc_bits(u[1]) >> 30) & 2u) | ((polycc_bits(u[2]) >> 29) & 4u);
+    if (!polycc_softmax_poly(base, cnt, POLYCC_META_LEAD(meta, oct), nrm, q, px, py, pz, kappa, neg_cut, s->T, &a,
+                             ga)) {
+        return;
+    }
+    if (s->nev == 0u) {
+        s->cur = a;
+        s->S2 = 1.0f;
+        s->G[0] = ga[0];
+        s->G[1] = ga[1];
+        s->G[2] = ga[2];
+    } else if (a < s->cur) {
+        float r = polycc_exp_le88(kappa * (a - s->cur));
+        s->S2 = r * s->S2 + 1.0f;
+        s->G[0] = r * s->G[0] + ga[0];
+        s->G[1] = r * s->G[1] + ga[1];
+        s->G[2] = r * s->G[2] + ga[2];
+        s->cur = a;
+    } else {
+        float x = kappa * (s->cur - a);
+        if (x > -POLYCC_NEGLIGIBLE_NATS) {
+            float e = polycc_exp_le88(x);
+            s->S2 = s->S2 + e;
+            s->G[0] = s->G[0] + e * ga[0];
+            s->G[1] = s->G[1] + e * ga[1];
+            s->G[2] = s->G[2] + e * ga[2];
+        }
+    }
+    ++s->nev;
+    s->T = (s->cur < s->a_ref ? s->cur : s->a_ref) + s->slack;
+    s->Tp = s->T > 0.0f ? s->T : 0.0f;
+}
+
+/* Pass 1 step: a_ref <- |p - c| - r_in if that is lower (sqrt only then). */
+POLYCC_INLINE float polycc_aref_step(const polycc_poly_t *P, float q, float px, float py, float pz, float a_ref)
+{
+    float u[3];
+    float d2 = polycc_dist2u(P, q, px, py, pz, u);
+    float r_in = (float)P->r_in * q;
+    float t = a_ref + r_in;
+    if (t > 0.0f && d2 < t * t) {
+        a_ref = sqrtf(d2) - r_in;
+    }
+    return a_ref;
+}
+
 uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *params, const float p[3], float *psi,
                         float grad[3])
 {
-    float px, py, pz, kappa, invk, neg_cut, slack, a_ref, cur, S2, Gx, Gy, Gz, marg, T, Tp, q, q_out;
-    uint32_t j, nev = 0;
+    float px, py, pz, kappa, invk, neg_cut, marg, q, q_out, psi0;
+    uint32_t j, m = 0u;
     const polycc_normal_t *nrm;
+    const polycc_index_t *ix;
+    const uint16_t *list = NULL;
+    polycc_smin_t s;
     *psi = 0.0f;
     grad[0] = 0.0f;
     grad[1] = 0.0f;
@@ -312,103 +386,98 @@ uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *para
     kappa = params->kappa;
     invk = 1.0f / kappa;
     neg_cut = -POLYCC_NEGLIGIBLE_NATS * invk;
-    slack = (POLYCC_NEGLIGIBLE_NATS + scene->log_lmax) * invk;
-
-    /* Pass 1: a_ref = min_k (|p - c_k| - r_in_k) >= min_k max_l g_kl over the clusters that
-     * can lower it; sqrt only on improvement.  Any a_ref >= that minimum is safe. */
-    a_ref = 3.0e38f;
-    for (j = 0; j < scene->n_clusters; ++j) {
-        const polycc_cluster_t *C = &scene->clusters[j];
-        const polycc_poly_t *P = &scene->polys[C->first];
-        const polycc_poly_t *Pend = P + C->count;
-        float t = a_ref + C->r_in;
-        if (!(t > 0.0f && polycc_dist2c(C, px, py, pz) < t * t)) {
-            continue;
+    s.slack = (POLYCC_NEGLIGIBLE_NATS + scene->log_lmax) * invk;
+    ix = scene->index;
+    if (ix != NULL) {
+        /* The cell of p (section 9); outside the grid box B the list stays empty (psi0 = D). */
+        float tx = (px - ix->ox) * ix->inv_cell, ty = (py - ix->oy) * ix->inv_cell, tz = (pz - ix->oz) * ix->inv_cell;
+        if (tx >= 0.0f && tx < (float)ix->nx && ty >= 0.0f && ty < (float)ix->ny && tz >= 0.0f &&
+            tz < (float)ix->nz) {
+            uint32_t c = (uint32_t)tx + (uint32_t)ix->nx * ((uint32_t)ty + (uint32_t)ix->ny * (uint32_t)tz);
+            uint32_t id = ix->cell_list[c];
+            while (id >= ix->n_lists) { /* octree descent: t doubled exactly, octant from the parities */
+                tx = tx * 2.0f;
+                ty = ty * 2.0f;
+                tz = tz * 2.0f;
+                id = ix->children[8u * (id - ix->n_lists) + (((uint32_t)tx & 1u) | (((uint32_t)ty & 1u) << 1) |
+                                                            (((uint32_t)tz & 1u) << 2))];
+            }
+            list = ix->entries + ix->list_start[id];
+            m = (uint32_t)ix->list_start[id + 1u] - (uint32_t)ix->list_start[id];
         }
-        for (; P < Pend; ++P) {
-            float u[3];
-            float d2 = polycc_dist2u(P, q, px, py, pz, u);
-            float r_in = (float)P->r_in * q;
-            t = a_ref + r_in;
-            if (t > 0.0f && d2 < t * t) {
-                a_ref = sqrtf(d2) - r_in;
+    }
+
+    /* Pass 1: a_ref = min_k (|p - c_k| - r_in_k) >= min_k max_l g_kl over the candidates (the clusters
+     * that can lower it, or the cell's list); any a_ref >= that minimum is safe. */
+    s.a_ref = 3.0e38f;
+    if (ix != NULL) {
+        for (j = 0; j < m; ++j) {
+            s.a_ref = polycc_aref_step(&scene->polys[list[j]], q, px, py, pz, s.a_ref);
+        }
+    } else {
+        for (j = 0; j < scene->n_clusters; ++j) {
+            const polycc_cluster_t *C = &scene->clusters[j];
+            const polycc_poly_t *P = &scene->polys[C->first];
+            const polycc_poly_t *Pend = P + C->count;
+            float t = s.a_ref + C->r_in;
+            if (!(t > 0.0f && polycc_dist2c(C, px, py, pz) < t * t)) {
+                continue;
+            }
+            for (; P < Pend; ++P) {
+                s.a_ref = polycc_aref_step(P, q, px, py, pz, s.a_ref);
             }
         }
     }
 
     /* Pass 2: cull clusters and polytopes, Boltzmann soft-max per polytope, online soft-min.
      * T = min(a_ref, cur) + slack is the culling threshold (recomputed when cur drops). */
-    T = a_ref + slack;
-    Tp = T > 0.0f ? T : 0.0f;
-    cur = 0.0f;
-    S2 = 0.0f;
-    Gx = 0.0f;
-    Gy = 0.0f;
-    Gz = 0.0f;
-    for (j = 0; j < scene->n_clusters; ++j) {
-        const polycc_cluster_t *C = &scene->clusters[j];
-        const polycc_poly_t *P = &scene->polys[C->first];
-        const polycc_poly_t *Pend = P + C->count;
-        const polycc_plane_t *pl = &scene->planes[C->first_plane];
-        if (polycc_culled(C->r_out, C->inv_gamma, polycc_dist2c(C, px, py, pz), Tp)) {
-            continue;
+    s.T = s.a_ref + s.slack;
+    s.Tp = s.T > 0.0f ? s.T : 0.0f;
+    s.cur = 0.0f;
+    s.S2 = 0.0f;
+    s.G[0] = 0.0f;
+    s.G[1] = 0.0f;
+    s.G[2] = 0.0f;
+    s.nev = 0u;
+    if (ix != NULL) {
+        for (j = 0; j < m; ++j) {
+            uint32_t k = list[j];
+            polycc_visit(&scene->polys[k], &scene->planes[ix->poly_first[k]], nrm, q, q_out, p, kappa, neg_cut, &s);
         }
-        for (; P < Pend; ++P) {
-            float a, ga[3], u[3];
-            uint32_t oct, meta = P->meta, cnt = POLYCC_META_COUNT(meta);
-            const polycc_plane_t *base = pl;
-            pl += cnt;
-            if (polycc_culled((float)P->r_out * q_out, (float)P->inv_gamma * POLYCC_INV_GAMMA_UNIT,
-                              polycc_dist2u(P, q, px, py, pz, u), Tp)) {
-                continue; /* max_l g_kl >= gamma (|u| - r_out) > T */
-            }
-            /* octant of u from the sign bits (-0.0 counts as negative; only picks the lead plane) */
-            oct = (polycc_bits(u[0]) >> 31) | ((polycc_bits(u[1]) >> 30) & 2u) | ((polycc_bits(u[2]) >> 29) & 4u);
-            if (!polycc_softmax_poly(base, cnt, POLYCC_META_LEAD(meta, oct), nrm, q, px, py, pz, kappa, neg_cut, T,
-                                     &a, ga)) {
+    } else {
+        for (j = 0; j < scene->n_clusters; ++j) {
+            const polycc_cluster_t *C = &scene->clusters[j];
+            const polycc_poly_t *P = &scene->polys[C->first];
+            const polycc_poly_t *Pend = P + C->count;
+            const polycc_plane_t *pl = &scene->planes[C->first_plane];
+            if (polycc_culled(C->r_out, C->inv_gamma, polycc_dist2c(C, px, py, pz), s.Tp)) {
                 continue;
             }
-            if (nev == 0u) {
-                cur = a;
-                S2 = 1.0f;
-                Gx = ga[0];
-                Gy = ga[1];
-                Gz = ga[2];
-            } else if (a < cur) {
-                float r = polycc_exp_le88(kappa * (a - cur));
-                S2 = r * S2 + 1.0f;
-                Gx = r * Gx + ga[0];
-                Gy = r * Gy + ga[1];
-                Gz = r * Gz + ga[2];
-                cur = a;
-            } else {
-                float x = kappa * (cur - a);
-                if (x > -POLYCC_NEGLIGIBLE_NATS) {
-                    float e = polycc_exp_le88(x);
-                    S2 = S2 + e;
-                    Gx = Gx + e * ga[0];
-                    Gy = Gy + e * ga[1];
-                    Gz = Gz + e * ga[2];
-                }
+            for (; P < Pend; ++P) {
+                const polycc_plane_t *base = pl;
+                pl += POLYCC_META_COUNT(P->meta);
+                polycc_visit(P, base, nrm, q, q_out, p, kappa, neg_cut, &s);
             }
-            ++nev;
-            T = (cur < a_ref ? cur : a_ref) + slack;
-            Tp = T > 0.0f ? T : 0.0f;
         }
     }
 
     marg = POLYCC_MARGIN_REL *
            ((((fabsf(px) + fabsf(py)) + fabsf(pz)) + scene->coord_bound) + params->radius + 32.0f * invk);
-    if (nev == 0u) {
-        *psi = POLYCC_PSI_EMPTY - (params->radius + marg);
-    } else {
-        float invS2 = 1.0f / S2;
-        float psi0 = cur - polycc_log(S2) * invk;
-        *psi = psi0 - (params->radius + marg);
-        grad[0] = Gx * invS2;
-        grad[1] = Gy * invS2;
-        grad[2] = Gz * invS2;
+    psi0 = POLYCC_PSI_EMPTY;
+    if (s.nev != 0u) {
+        float invS2 = 1.0f / s.S2;
+        psi0 = s.cur - polycc_log(s.S2) * invk;
+        grad[0] = s.G[0] * invS2;
+        grad[1] = s.G[1] * invS2;
+        grad[2] = s.G[2] * invS2;
     }
+    if (ix != NULL && !(psi0 < ix->cap)) { /* clearance cap: psi0' = min(psi0, D), no gradient */
+        psi0 = ix->cap;
+        grad[0] = 0.0f;
+        grad[1] = 0.0f;
+        grad[2] = 0.0f;
+    }
+    *psi = psi0 - (params->radius + marg);
     if (!polycc_finite(*psi) || !polycc_finite(grad[0]) || !polycc_finite(grad[1]) || !polycc_finite(grad[2])) {
         *psi = 0.0f;
         grad[0] = 0.0f;

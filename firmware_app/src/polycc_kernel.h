@@ -74,7 +74,7 @@ float polycc_log(float x);
 
 /* Evaluates psi (radius and rounding margin already subtracted) and its gradient at p.
  * Returns 0 or POLYCC_FLAG_INVALID (then *psi = 0, grad = 0).
- * Stack: 212 bytes for polycc_step on the Cortex-M4 at -Os (tests/test_kernel_arm.py). */
+ * Stack: 292 bytes for polycc_step on the Cortex-M4 at -Os (tests/onboard/test_kernel_arm.py). */
 uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *params, const float p[3],
                         float *psi, float grad[3]);
 

@@ -56,7 +56,9 @@
  *                       log_lmax     >= ln(max_k count_k)
  *
  * Flash bytes (exact, 32-bit target; polycc.scene_layout.layout_bytes):
- *     48 + 4 * n_planes + 16 * n_polys + 32 * n_clusters + 12 * n_normals
+ *     52 + 4 * n_planes + 16 * n_polys + 32 * n_clusters + 12 * n_normals
+ *     (+ with an index: 56 + 2 * (n_cells + 8 n_inner + n_lists + 1 + n_entries + n_polys), each array
+ *      padded to 4 bytes)
  * e.g. 10 half-planes per polytope, 13 polytopes per cluster, 400 distinct normals per 8000
  * planes: 4 + 1.6 + 0.25 + 0.6 = 6.4 bytes per half-plane.  Distinct normals cost 12 B each:
  * covers whose normals repeat (lattice normals of voxel hulls, k-DOPs, or a table capped by
@@ -82,12 +84,13 @@
 #define POLYCC_SCENE_FORMAT 3u
 
 /* Byte sizes of the records, checked by polycc/onboard/layout.py and the tests.  The root struct
- * is POLYCC_ROOT_BYTES on a 32-bit target (8 words + 4 pointers). */
+ * is POLYCC_ROOT_BYTES on a 32-bit target (8 words + 5 pointers). */
 #define POLYCC_NORMAL_BYTES 12u
 #define POLYCC_PLANE_BYTES 4u
 #define POLYCC_POLY_BYTES 16u
 #define POLYCC_CLUSTER_BYTES 32u
-#define POLYCC_ROOT_BYTES 48u
+#define POLYCC_ROOT_BYTES 52u
+#define POLYCC_INDEX_BYTES 56u
 
 /* Limits: half-planes per scene, polytopes (uint16_t cluster index), half-planes per polytope (8-bit count - 1), distinct normals (uint16_t
  * index), lead planes (3-bit index). */
@@ -133,6 +136,29 @@ typedef struct polycc_cluster {
     float r_in;           /* reach, rounded up */
 } polycc_cluster_t;
 
+/* Spatial index (docs/barrier.md section 9): a uniform grid of cells of side s over the box B with low
+ * corner (ox, oy, oz), each cell a leaf or an octree.  The kernel computes t = (p - o) * inv_cell in
+ * float32, takes the cell floor(t) and its node v = cell_list[cell]; while v >= n_lists (an inner node)
+ * it doubles t (exact) and descends to children[8 (v - n_lists) + octant], octant bit b = the parity of
+ * floor(t_b).  A leaf v < n_lists names the list of polytopes the kernel evaluates there; psi0 is capped
+ * at `cap` (D, metres); outside B it returns D with no polytope evaluated.  Certified by the generator
+ * (polycc/onboard/index.py): every polytope left out of a leaf box has phi_k >= min(U_box, D) over it,
+ * every polytope has phi_k >= D outside B. */
+typedef struct polycc_index {
+    float ox, oy, oz;              /* low corner of B, metres */
+    float inv_cell;                /* 1 / s, a power of two */
+    float cap;                     /* clearance cap D, metres (> 0) */
+    uint16_t nx, ny, nz;           /* grid dimensions (>= 1); cell id = i + nx (j + ny k) */
+    uint16_t n_lists;              /* number of distinct lists */
+    uint32_t n_entries;            /* length of entries[] */
+    uint32_t n_inner;              /* inner octree nodes: children[8 n_inner] */
+    const uint16_t *cell_list;     /* [nx ny nz] node of each cell: < n_lists a list id, else inner node */
+    const uint16_t *children;      /* [8 n_inner] the octants' nodes of each inner node */
+    const uint16_t *list_start;    /* [n_lists + 1] list l is entries[list_start[l] .. list_start[l + 1]) */
+    const uint16_t *entries;       /* polytope indices into polys[] */
+    const uint16_t *poly_first;    /* [n_polys] first plane of each polytope */
+} polycc_index_t;
+
 typedef struct polycc_scene {
     uint32_t format;     /* POLYCC_SCENE_FORMAT */
     uint32_t n_clusters; /* number of clusters (>= 1 if n_polys > 0) */
@@ -146,6 +172,7 @@ typedef struct polycc_scene {
     const polycc_poly_t *polys;
     const polycc_plane_t *planes;
     const polycc_normal_t *normals;
+    const polycc_index_t *index; /* NULL: no index, every polytope is a candidate, no cap */
 } polycc_scene_t;
 
 #endif /* POLYCC_SCENE_LAYOUT_H */

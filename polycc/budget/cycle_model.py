@@ -26,11 +26,15 @@ from polycc.onboard.layout import PackedScene, n_clusters_for
 
 CPU_HZ = 168e6
 DEFAULT_CPU_SHARE = 0.2
+DEFAULT_RATE_HZ = 500.0  # with DEFAULT_CPU_SHARE: a certified worst case of 400 us (67 200 cycles)
 FIXED_CYCLES = 2500.0
 PER_CLUSTER_CYCLES = 60.0
 PER_ENTERED_CYCLES = 60.0
 PER_POLY_CYCLES = 190.0
 PER_PLANE_CYCLES = 70.0
+INDEX_LOOKUP_CYCLES = 80.0  # cell lookup of the spatial index (float32 cell, two list loads)
+INDEX_LEVEL_CYCLES = 30.0  # one octree level of the lookup
+PER_EXP_PLANE_CYCLES = 135.0  # extra for a half-plane on the soft-max's exp path (new maximum or accumulated)
 
 
 def cycles(n_clusters: float, entered: float, evaluated: float, planes: float) -> float:
@@ -55,8 +59,36 @@ def us(cyc) -> np.ndarray:
     return np.ceil(np.asarray(cyc, np.float64) / CPU_HZ * 1e6).astype(np.int64)
 
 
-def worst_cycles(packed: PackedScene) -> float:
-    """Every cluster, polytope and half-plane evaluated."""
+def indexed_cycles(polys, planes, depth=0, exp_planes=None):
+    """Cycles of one evaluation through the spatial index when the leaf (``depth`` octree levels below
+    its cell) lists ``polys`` polytopes with ``planes`` half-planes in all, every one of them entered,
+    evaluated and fully scanned, ``exp_planes`` of the planes on the exp path (None: all of them)."""
+    exp_planes = planes if exp_planes is None else exp_planes
+    return (cycles(0, polys, polys, planes) + INDEX_LOOKUP_CYCLES + INDEX_LEVEL_CYCLES * np.asarray(depth, np.float64)
+            + PER_EXP_PLANE_CYCLES * np.asarray(exp_planes, np.float64))
+
+
+def _leaf_cost(polys, planes, depth, exp_planes):
+    return float(indexed_cycles(polys, planes, depth, exp_planes))
+
+
+def leaf_cycles(packed: PackedScene, kappa: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    """(list ids, certified cycles) of every non-empty leaf box of the index: every listed polytope and
+    plane evaluated, the planes that can take the exp path there at ``kappa`` (the build kappa; the
+    figure holds for any kappa at or above it) charged for it, the octree descent to its depth."""
+    from polycc.onboard.index import leaf_work
+
+    w = leaf_work(packed, kappa)
+    return w[:, 0], indexed_cycles(w[:, 2], w[:, 3], w[:, 1], w[:, 4])
+
+
+def worst_cycles(packed: PackedScene, kappa: float = 100.0) -> float:
+    """Certified worst case of one evaluation.  With a spatial index: the maximum over the cells (each
+    list's polytopes and half-planes all evaluated) and the outside-B path (no polytope).  Without:
+    every cluster, polytope and half-plane evaluated."""
+    if packed.index is not None:
+        _, cyc = leaf_cycles(packed, kappa)
+        return float(max(np.max(cyc, initial=0.0), indexed_cycles(0, 0)))
     return cycles(packed.n_clusters, packed.n_polys, packed.n_polys, packed.n_planes)
 
 
@@ -72,6 +104,11 @@ def state_cycles(packed: PackedScene, params, X: np.ndarray) -> np.ndarray:
     barrier(packed, params, X, stats=stats)
     ev = np.asarray(stats["evaluated"], np.float64)
     mean_planes = packed.n_planes / max(packed.n_polys, 1)
+    if packed.index is not None:
+        _, depth = packed.index_leaf(X)
+        # FIXED once (in indexed_cycles), plus the work counted by the reference
+        work = cycles(0, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes) - FIXED_CYCLES
+        return indexed_cycles(0, 0, depth) + work
     return cycles(packed.n_clusters, np.asarray(stats["entered"], np.float64), ev, ev * mean_planes)
 
 
@@ -91,7 +128,9 @@ def estimate_us(packed: PackedScene, kappa: float = 100.0, samples: int = 400, s
     if not free.any():
         free[:] = True
     typ = state_cycles(packed, params, x[free])
-    return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6), "worst_us": float(worst_cycles(packed) / CPU_HZ * 1e6)}
+    return {"typical_us": float(np.median(typ) / CPU_HZ * 1e6),
+            "worst_us": float(worst_cycles(packed, kappa) / CPU_HZ * 1e6),
+            "worst_is_certified": packed.index is not None}
 
 
 # The shield's plan (firmware_app/src/polycc_controller.[ch], docs/barrier.md section 8): one

@@ -32,16 +32,19 @@ from typing import Callable
 
 import numpy as np
 
+from polycc.budget.cycle_model import _leaf_cost, worst_cycles
 from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
 from polycc.geometry.union_volume import in_voxels, union_waste
+from polycc.onboard.index import build_index, grid_box, index_slack
 from polycc.onboard.layout import (
     DEFAULT_NORMAL_GRID,
     MAX_POLY_PLANES,
     PLANE_BYTES,
     PackedScene,
+    SceneIndex,
     layout_bytes,
     n_clusters_for,
     pack_scene,
@@ -61,13 +64,16 @@ class Budget:
     flash_bytes: int
     max_halfplanes: int | None = None
     rate_cycles: float | None = None
+    clearance_cap: float | None = None  # D of the spatial index (None: no index, worst = every polytope)
+    kappa: float = 100.0  # for the index's tightness slack
 
     def caps(self, n: int, n_normals: int) -> dict[str, int]:
-        """Half-plane capacity for n polytopes and a normal table of n_normals entries, per budget."""
+        """Half-plane capacity for n polytopes and a normal table of n_normals entries, per budget.
+        With an index the rate budget bounds the index's certified worst case instead (in realise)."""
         caps = {"flash": (self.flash_bytes - data_bytes(n, 0, n_normals)) // PLANE_BYTES}
         if self.max_halfplanes is not None:
             caps["halfplanes"] = int(self.max_halfplanes)
-        if self.rate_cycles is not None:
+        if self.rate_cycles is not None and self.clearance_cap is None:
             from polycc.budget.cycle_model import plane_budget
 
             caps["rate"] = plane_budget(self.rate_cycles, n)
@@ -107,6 +113,8 @@ class Candidate:
     conservativeness: float
     conservativeness_ci: float
     caps: dict = field(default_factory=dict)
+    worst_cycles: float = 0.0  # certified (index) or every-polytope estimate, cycles
+    meets_rate: bool = True  # the certified worst case fits --rate-hz / --cpu-share
 
     @property
     def n_planes(self) -> int:
@@ -177,7 +185,8 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     for p in polys:
         _, first = np.unique(normal_keys(p.halfplanes), return_index=True)
         rows.append(p.halfplanes[np.sort(first)])
-    for _ in range(4):  # pack_scene may close a snapped polytope with extra box planes: then retry tighter
+    for _ in range(8):  # pack_scene may close a snapped polytope with extra box planes, or the index may not
+        # fit beside the planes: then retry tighter
         if cap < MIN_PLANES * n:
             return None
         red = reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES,
@@ -186,6 +195,17 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
             return None
         packed = pack_scene(red[0], verts, max_normals=max_normals, record_cache=caches.setdefault("records", {}))
         over_planes = packed.n_planes - min(caps.values())
+        if budget.clearance_cap is not None:
+            ix = choose_index(packed, budget, budget.flash_bytes - packed.flash_bytes(),
+                              cache=caches.setdefault("grid_box", {}))
+            if ix is None:  # no index fits beside these planes: make room for the coarsest one
+                coarse = build_index(packed, budget.clearance_cap, max(INDEX_CELLS), budget.kappa, max_bytes=0,
+                                     box=grid_box(packed, float(np.float32(budget.clearance_cap))
+                                                  + index_slack(packed, budget.kappa), caches["grid_box"]))
+                over_bytes = packed.flash_bytes() + coarse.nbytes() - budget.flash_bytes
+                cap -= max(-(-over_bytes // PLANE_BYTES), 1)
+                continue
+            packed = packed.with_index(ix)
         over_bytes = packed.flash_bytes() - budget.flash_bytes
         dropped = sum(len(h) for h in rows) - sum(len(h) for h in red[0])
         if over_planes <= 0 and over_bytes <= 0:
@@ -193,10 +213,12 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
         cap -= max(over_planes, -(-over_bytes // PLANE_BYTES), 1)
     else:
         return None
+    worst = worst_cycles(packed, budget.kappa)
+    meets = not (budget.clearance_cap is not None and budget.rate_cycles is not None and worst > budget.rate_cycles)
     # The byte model is exact and the table can only shrink (reduction removes planes, merging
     # removes duplicates, unused entries are dropped).
-    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals), \
-        "byte model out of date"
+    assert packed.flash_bytes() == data_bytes(packed.n_polys, packed.n_planes, packed.n_normals) + (
+        packed.index.nbytes() if packed.index is not None else 0), "byte model out of date"
     # (+6: pack_scene may add the axis normals to close an over-elongated polytope)
     assert packed.n_normals <= t_eff + 6 or max_normals is not None and packed.n_normals <= max_normals
     assert packed.flash_bytes() <= budget.flash_bytes
@@ -218,7 +240,36 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     # estimated directly, which is far less noisy than Vol(union) - Vol(V+)
     _, _, waste, wci = union_waste(stored, boxes, caches["occupied"], samples=mc_samples, seed=seed)
     return Candidate(n, max_normals, packed, before, normals_before, dropped, before - dropped - packed.n_planes,
-                     occupied_volume + waste, wci, 1.0 + waste / occupied_volume, wci / occupied_volume, caps)
+                     occupied_volume + waste, wci, 1.0 + waste / occupied_volume, wci / occupied_volume, caps,
+                     worst, meets)
+
+
+INDEX_CELLS = (0.5, 1.0, 2.0)  # top cell sizes of the index tried, metres (powers of two)
+
+
+def choose_index(packed: PackedScene, budget: Budget, max_bytes: int, cells=INDEX_CELLS,
+                 cache: dict | None = None) -> SceneIndex | None:
+    """The spatial index for ``packed`` (cap D = budget.clearance_cap), refined until its certified worst
+    case meets the rate budget (or as far as ``max_bytes`` allows): among the top cell sizes, the one that
+    meets the rate with the fewest bytes, else the one with the smallest worst case; None if no index
+    fits ``max_bytes``."""
+    best = None
+    D = float(np.float32(budget.clearance_cap))
+    box = grid_box(packed, D + index_slack(packed, budget.kappa), cache)
+    for s in cells:
+        try:
+            ix = build_index(packed, budget.clearance_cap, s, budget.kappa, target=budget.rate_cycles,
+                             max_bytes=max_bytes, cost=_leaf_cost, box=box)
+        except PolyccError:
+            continue
+        if ix.nbytes() > max_bytes:
+            continue
+        w = worst_cycles(packed.with_index(ix), budget.kappa)
+        meets = budget.rate_cycles is None or w <= budget.rate_cycles
+        key = (not meets, ix.nbytes() if meets else w, w)
+        if best is None or key < best[0]:
+            best = (key, ix)
+    return None if best is None else best[1]
 
 
 def _largest(lo: int, hi: int, ok: Callable[[int], bool]) -> int:
@@ -285,19 +336,56 @@ def select(
     done = _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress)
     if not done:
         raise PolyccError(impossible_budget_message(family, budget))
+    # No candidate's certified worst case meets the rate: halve n (fewer polytopes, fewer per cell)
+    # a few times; if none does, keep the fastest candidate and say so in the binding budget.
+    for _ in range(5):
+        if any(c.meets_rate for c in done):
+            break
+        n = max(1, min(c.n for c in done) // 2)
+        more = _realise_all(family, budget, [(n, None)], normals, occ_vol, mc_samples, None)
+        done = sorted(done + more, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+        if n == 1:
+            break
+    if not any(c.meets_rate for c in done) and budget.rate_cycles is not None:
+        # still none: the fewest polytopes with their half-planes capped so that even with every plane on
+        # the exp path the figure fits (outward reduction drops planes)
+        from dataclasses import replace
+
+        from polycc.budget.cycle_model import PER_EXP_PLANE_CYCLES, PER_PLANE_CYCLES, indexed_cycles
+
+        for n in sorted({min(c.n for c in done), 1}):
+            room = budget.rate_cycles - float(indexed_cycles(n, 0, 4, 0))
+            cap = int(room // (PER_PLANE_CYCLES + PER_EXP_PLANE_CYCLES))
+            if cap < MIN_PLANES * n:
+                continue
+            tight = replace(budget, max_halfplanes=min(cap, budget.max_halfplanes or cap))
+            more = _realise_all(family, tight, [(n, None)], normals, occ_vol, mc_samples, None)
+            done = sorted(done + [replace(c, meets_rate=c.worst_cycles <= budget.rate_cycles) for c in more],
+                          key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+            if any(c.meets_rate for c in done):
+                break
+    if not any(c.meets_rate for c in done):
+        best = min(done, key=lambda c: (c.worst_cycles, c.conservativeness))
+        return best, done, (f"rate (missed: no candidate's certified worst case fits --rate-hz/--cpu-share; the "
+                            f"fastest, {best.worst_cycles / 168:.0f} us, is taken)")
+    done_all, done = done, [c for c in done if c.meets_rate]
     # least conservative; among candidates within the Monte Carlo 95 % half-width of it
     # (statistically tied) the fewest polytopes, which is the fastest on board
     low = min(done, key=lambda c: (c.conservativeness, -c.n))
     best = min((c for c in done if c.conservativeness <= low.conservativeness + low.conservativeness_ci),
                key=lambda c: (c.n, c.conservativeness))
-    return best, done, binding_text(family, best, done)
+    return best, done_all, binding_text(family, best, done, done_all)
 
 
-def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate]) -> str:
+def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate],
+                 done_all: list[Candidate] | None = None) -> str:
     """Which budget stopped the choice: its name first ('flash', 'halfplanes', 'rate' or 'none'),
     then why, for the summary."""
     if best.n == family.n_max and best.dropped == 0 and best.max_normals is None:
         return "none (the whole sub-cover fits)"
+    slower = [c for c in (done_all or []) if not c.meets_rate]
+    if slower and min(c.conservativeness for c in slower) < best.conservativeness - best.conservativeness_ci:
+        return "rate (less conservative candidates miss the certified worst case budget)"
     tightest = min(best.caps, key=best.caps.get)
     slack = best.caps[tightest] - best.n_planes  # half-planes still free under that budget
     full = slack < max(8, 2 * best.n_planes / best.n)  # not even two more average polytopes fit
@@ -360,6 +448,9 @@ def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:
                      f"--flash-kb {math.ceil(need / 1024 * 100) / 100:g} or more")
     if budget.max_halfplanes is not None and budget.max_halfplanes < need_planes:
         parts.append(f"--max-halfplanes {budget.max_halfplanes} is too small: use {need_planes} or more")
-    if budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:
+    if budget.rate_cycles is not None and budget.clearance_cap is not None:
+        parts.append("or no candidate's certified worst case fits --rate-hz/--cpu-share: lower --rate-hz, raise "
+                     "--cpu-share or --flash-kb (a finer index), or lower --clearance-cap")
+    elif budget.rate_cycles is not None and budget.caps(1, need_planes)["rate"] < need_planes:
         parts.append("--rate-hz is too high for even one polytope: lower it")
     return "; ".join(parts)

@@ -93,7 +93,28 @@ def render_header(packed: PackedScene, meta: dict) -> str:
         clusters=[c_record(r) for r in packed.clusters],
         coord_bound=c_float(packed.coord_bound),
         log_lmax=c_float(packed.log_lmax),
+        index=_index_context(packed),
     )
+
+
+def _index_context(packed: PackedScene) -> dict | None:
+    ix = packed.index
+    if ix is None:
+        return None
+    r = ix.record()
+    arrays = []
+    for name, a in zip(("cell_list", "children", "list_start", "entries", "poly_first"), ix.arrays()):
+        vals = [f"{int(v)}u" for v in np.asarray(a)]
+        if len(vals) % 2:
+            vals.append("0u")  # pad to 4 bytes, as the image
+        if not vals:
+            vals = ["0u", "0u"]  # C has no empty arrays (not counted in the bytes)
+        arrays.append((name, vals))
+    return {"dims": " x ".join(str(d) for d in ix.dims), "cell": f"{ix.cell:g}", "n_lists": ix.n_lists,
+            "n_entries": len(ix.entries), "cap_text": f"{float(ix.cap):g}", "cap": c_float(ix.cap),
+            "bytes": ix.nbytes(), "arrays": arrays, "ox": c_float(r["ox"]), "oy": c_float(r["oy"]),
+            "oz": c_float(r["oz"]), "inv_cell": c_float(r["inv_cell"]), "nx": r["nx"], "ny": r["ny"],
+            "nz": r["nz"], "n_inner": ix.n_inner}
 
 
 def manifest(packed: PackedScene, meta: dict) -> dict:

@@ -68,8 +68,14 @@ def _quantum_ok(q) -> bool:
 
 
 def _scene_ok(sc: PackedScene) -> bool:
-    return bool((sc.n_polys == 0) == (sc.n_clusters == 0) and _quantum_ok(sc.quantum)
-                and ZERO <= sc.coord_bound <= F(1e6) and ZERO <= sc.log_lmax <= F(12.0))
+    ok = bool((sc.n_polys == 0) == (sc.n_clusters == 0) and _quantum_ok(sc.quantum)
+              and ZERO <= sc.coord_bound <= F(1e6) and ZERO <= sc.log_lmax <= F(12.0))
+    if ok and sc.index is not None:
+        r = sc.index.record()
+        ok = bool(sc.n_polys > 0 and ZERO < r["cap"] <= F(1e6) and ZERO < r["inv_cell"] <= F(1e6)
+                  and all(-POS_MAX <= r[k] <= POS_MAX for k in ("ox", "oy", "oz"))
+                  and min(r["nx"], r["ny"], r["nz"]) > 0)
+    return ok
 
 
 def _visit_order(lead: np.ndarray, count: int) -> np.ndarray:
@@ -90,6 +96,7 @@ def _softmax_poly(H: np.ndarray, px, py, pz, kappa, neg_cut, abort_at):
     alive = ~(m >= abort_at)
     thr = m + neg_cut
     n = len(px)
+    n_exp = np.zeros(n, np.int64)  # planes that took the exp path (statistics only)
     S = np.ones(n, F)
     A = np.zeros(n, F)
     N = H[:, 0, :3].copy()
@@ -99,6 +106,7 @@ def _softmax_poly(H: np.ndarray, px, py, pz, kappa, neg_cut, abort_at):
         sel = alive & (gl > thr)
         if not sel.any():
             continue
+        n_exp += sel
         new = sel & (gl > m)
         drop = new & (gl >= abort_at)
         alive &= ~drop
@@ -128,7 +136,7 @@ def _softmax_poly(H: np.ndarray, px, py, pz, kappa, neg_cut, abort_at):
     q = A * invS
     a = m + q
     ga = (N + kappa * (M - q[:, None] * N)) * invS[:, None]
-    return alive, a, ga
+    return alive, a, ga, n_exp
 
 
 def barrier(scene: PackedScene, params: Params, p: np.ndarray, *, cull: bool = True, stats: dict | None = None
@@ -137,8 +145,9 @@ def barrier(scene: PackedScene, params: Params, p: np.ndarray, *, cull: bool = T
 
     ``cull=False`` (not in the C) evaluates every polytope fully: the tests use it to check
     that culling changes psi by less than the bound of docs/barrier.md.  If ``stats`` is a dict,
-    it receives per state ``"evaluated"`` (polytopes in the soft-min) and ``"entered"``
-    (polytopes that passed the sphere tests, some then dropped by their lead plane)."""
+    it receives per state ``"evaluated"`` (polytopes in the soft-min), ``"entered"``
+    (polytopes that passed the sphere tests, some then dropped by their lead plane) and
+    ``"exp_planes"`` (half-planes that took the soft-max's exp path: a new maximum or a term)."""
     p = np.ascontiguousarray(np.asarray(p, dtype=F).reshape(-1, 3))
     n = p.shape[0]
     psi = np.zeros(n, F)
@@ -149,12 +158,14 @@ def barrier(scene: PackedScene, params: Params, p: np.ndarray, *, cull: bool = T
         flags[~valid] = FLAG_INVALID
         vi = np.nonzero(valid)[0]
         if len(vi):
-            psi[vi], grad[vi], bad, nev, entered = _barrier_valid(scene, params, p[vi], cull)
+            psi[vi], grad[vi], bad, nev, (entered, exp_planes) = _barrier_valid(scene, params, p[vi], cull)
             if stats is not None:
                 stats["evaluated"] = np.zeros(n, np.int64)
                 stats["evaluated"][vi] = nev
                 stats["entered"] = np.zeros(n, np.int64)
                 stats["entered"][vi] = entered
+                stats["exp_planes"] = np.zeros(n, np.int64)
+                stats["exp_planes"][vi] = exp_planes
             flags[vi[bad]] = FLAG_INVALID
     return psi, grad, flags
 
@@ -180,58 +191,79 @@ def _barrier_valid(scene: PackedScene, params: Params, p: np.ndarray, cull: bool
 
     everyone = np.arange(n)
     a_ref = np.full(n, BIG, F)
-    for C in clusters:
-        t = a_ref + F(C["r_in"])
-        idx = np.nonzero((t > ZERO) & (d2_of(C, everyone) < t * t))[0]
-        for P in polys[int(C["first"]) : int(C["first"]) + int(C["count"])]:
-            if len(idx) == 0:
-                break
-            d2 = d2_of(P, idx)
-            t = a_ref[idx] + F(P["r_in"])
-            upd = (t > ZERO) & (d2 < t * t)
-            a_ref[idx[upd]] = np.sqrt(d2[upd]) - F(P["r_in"])
-
     cur = np.zeros(n, F)
     S2 = np.zeros(n, F)
     G = np.zeros((n, 3), F)
     nev = np.zeros(n, np.int64)
     entered = np.zeros(n, np.int64)  # polytopes that passed the sphere tests (statistics only)
+    exp_planes = np.zeros(n, np.int64)  # half-planes on the soft-max's exp path (statistics only)
 
     def threshold(idx):
         lim = np.where((nev[idx] != 0) & (cur[idx] < a_ref[idx]), cur[idx], a_ref[idx])
         return lim + slack if cull else np.full(len(idx), np.inf, F)
 
-    for C in clusters:
-        open_ = everyone[~culled(C, everyone, threshold(everyone))]
-        for P in polys[int(C["first"]) : int(C["first"]) + int(C["count"])]:
-            if len(open_) == 0:
-                break
-            T = threshold(open_)
-            keep = ~culled(P, open_, T)
-            i, T = open_[keep], T[keep]
-            if len(i) == 0:
-                continue
-            entered[i] += 1
-            h = pm[int(P["first"]) : int(P["first"]) + int(P["count"])]
-            ux, uy, uz = px[i] - F(P["cx"]), py[i] - F(P["cy"]), pz[i] - F(P["cz"])
-            octant = np.signbit(ux) * 1 + np.signbit(uy) * 2 + np.signbit(uz) * 4
-            H = h[_visit_order(P["lead"], len(h))[octant]]
-            alive, a, ga = _softmax_poly(H, px[i], py[i], pz[i], kappa, neg_cut, T)
-            i, a, ga = i[alive], a[alive], ga[alive]
-            _softmin_update(i, a, ga, kappa, cur, S2, G, nev)
+    def aref_step(P, idx):
+        d2 = d2_of(P, idx)
+        t = a_ref[idx] + F(P["r_in"])
+        upd = (t > ZERO) & (d2 < t * t)
+        a_ref[idx[upd]] = np.sqrt(d2[upd]) - F(P["r_in"])
+
+    def visit(P, open_):
+        T = threshold(open_)
+        keep = ~culled(P, open_, T)
+        i, T = open_[keep], T[keep]
+        if len(i) == 0:
+            return
+        entered[i] += 1
+        h = pm[int(P["first"]) : int(P["first"]) + int(P["count"])]
+        ux, uy, uz = px[i] - F(P["cx"]), py[i] - F(P["cy"]), pz[i] - F(P["cz"])
+        octant = np.signbit(ux) * 1 + np.signbit(uy) * 2 + np.signbit(uz) * 4
+        H = h[_visit_order(P["lead"], len(h))[octant]]
+        alive, a, ga, n_exp = _softmax_poly(H, px[i], py[i], pz[i], kappa, neg_cut, T)
+        exp_planes[i] += n_exp
+        i, a, ga = i[alive], a[alive], ga[alive]
+        _softmin_update(i, a, ga, kappa, cur, S2, G, nev)
+
+    if scene.index is not None:
+        lid, _ = scene.index_leaf(p)
+        lists = scene.index.lists()
+        for L in np.unique(lid[lid >= 0]):
+            idx = np.nonzero(lid == L)[0]
+            for k in lists[L]:
+                aref_step(polys[int(k)], idx)
+            for k in lists[L]:
+                visit(polys[int(k)], idx)
+    else:
+        for C in clusters:
+            t = a_ref + F(C["r_in"])
+            idx = np.nonzero((t > ZERO) & (d2_of(C, everyone) < t * t))[0]
+            for P in polys[int(C["first"]) : int(C["first"]) + int(C["count"])]:
+                if len(idx) == 0:
+                    break
+                aref_step(P, idx)
+        for C in clusters:
+            open_ = everyone[~culled(C, everyone, threshold(everyone))]
+            for P in polys[int(C["first"]) : int(C["first"]) + int(C["count"])]:
+                if len(open_) == 0:
+                    break
+                visit(P, open_)
 
     marg = MARGIN_REL * (((((np.abs(px) + np.abs(py)) + np.abs(pz)) + scene.coord_bound) + radius) + F(32.0) * invk)
-    psi = np.where(nev == 0, PSI_EMPTY - (radius + marg), ZERO).astype(F)
+    psi0 = np.full(n, PSI_EMPTY, F)
     grad = np.zeros((n, 3), F)
     e = np.nonzero(nev != 0)[0]
     invS2 = ONE / S2[e]
-    psi0 = cur[e] - log32(S2[e]) * invk
-    psi[e] = psi0 - (radius + marg[e])
+    psi0[e] = cur[e] - log32(S2[e]) * invk
     grad[e] = G[e] * invS2[:, None]
+    if scene.index is not None:  # clearance cap: psi0' = min(psi0, D) with no gradient
+        capped = ~(psi0 < scene.index.cap)
+        psi0[capped] = scene.index.cap
+        grad[capped] = ZERO
+    psi = (psi0 - (radius + marg)).astype(F)
     bad = ~(_finite(psi) & np.all(_finite(grad), axis=1))
     psi[bad] = ZERO
     grad[bad] = ZERO
-    return psi, grad, bad, nev, entered
+    return psi, grad, bad, nev, (entered, exp_planes)
 
 
 def _softmin_update(i, a, ga, kappa, cur, S2, G, nev) -> None:

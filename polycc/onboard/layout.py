@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from fractions import Fraction
 from functools import cached_property
 
@@ -29,7 +29,8 @@ NORMAL_BYTES = 12
 PLANE_BYTES = 4
 POLY_BYTES = 16
 CLUSTER_BYTES = 32
-ROOT_BYTES = 48  # polycc_scene_t on a 32-bit target: 8 words + 4 pointers
+ROOT_BYTES = 52  # polycc_scene_t on a 32-bit target: 8 words + 5 pointers (the last: the index, or NULL)
+INDEX_BYTES = 56  # polycc_index_t: 5 floats, 4 uint16, 2 uint32, 5 pointers
 MAX_POLY_PLANES = 256
 MAX_PLANES = 65535
 MAX_POLYS = 65535  # uint16 polytope index in the cluster records
@@ -54,22 +55,38 @@ DECODED_POLY_DTYPE = np.dtype([("first", "<u4"), ("count", "<u4"), ("cx", "<f4")
 HEADER = struct.Struct("<IIIIIfff")
 assert (NORMAL_DTYPE.itemsize, PLANE_DTYPE.itemsize, POLY_DTYPE.itemsize, CLUSTER_DTYPE.itemsize) == (
     NORMAL_BYTES, PLANE_BYTES, POLY_BYTES, CLUSTER_BYTES)
-assert HEADER.size + 16 == ROOT_BYTES
+assert HEADER.size + 20 == ROOT_BYTES
+# polycc_index_t without its pointers: origin, 1/s, cap D, dims, lists, entries
+INDEX_HEADER = struct.Struct("<fffffHHHHII")
+INDEX_DTYPE_FIELDS = ("ox", "oy", "oz", "inv_cell", "cap", "nx", "ny", "nz", "n_lists", "n_entries", "n_inner")
+assert INDEX_HEADER.size + 20 == INDEX_BYTES
 
 _UNIT_TOL = 1e-5  # |n| must be 1 within this before snapping
 _U64 = 2.0**-53
 
 
-def layout_bytes(n_polys: int, n_planes: int, n_clusters: int, n_normals: int) -> int:
+def _pad4(n_u16: int) -> int:
+    """Bytes of n uint16 values padded to a 4-byte boundary."""
+    return 4 * ((2 * n_u16 + 3) // 4)
+
+
+def index_bytes(n_cells: int, n_inner: int, n_lists: int, n_entries: int, n_polys: int) -> int:
+    """Exact flash bytes of a spatial index (polycc_index_t and its five uint16 arrays, each padded
+    to 4 bytes): ``56 + 2 n_cells + 16 n_inner + 2 (n_lists + 1) + 2 n_entries + 2 n_polys`` (+ padding)."""
+    return INDEX_BYTES + _pad4(n_cells) + _pad4(8 * n_inner) + _pad4(n_lists + 1) + _pad4(n_entries) + _pad4(n_polys)
+
+
+def layout_bytes(n_polys: int, n_planes: int, n_clusters: int, n_normals: int, index: int = 0) -> int:
     """Exact flash bytes of a format-3 scene (all generated arrays plus the root struct):
-    ``48 + 4 n_planes + 16 n_polys + 32 n_clusters + 12 n_normals``.
+    ``52 + 4 n_planes + 16 n_polys + 32 n_clusters + 12 n_normals`` plus ``index`` (the bytes of the
+    spatial index, :func:`index_bytes`, 0 without one).
 
     ``n_normals`` is the number of distinct stored normals (at most ``n_planes``; for covers with
     lattice normals it is small, see ``pack_scene(normal_grid=...)``); ``n_clusters`` is
     ``len(cluster_groups(n_polys, leaf))``, ``ceil(n_polys / leaf)`` to ``2 ceil(n_polys / leaf)``
     with ``leaf = max(4, ceil(sqrt(n_polys)))``: use :func:`n_clusters_for` for the exact count."""
     return ROOT_BYTES + PLANE_BYTES * n_planes + POLY_BYTES * n_polys + CLUSTER_BYTES * n_clusters + \
-        NORMAL_BYTES * n_normals
+        NORMAL_BYTES * n_normals + index
 
 
 def n_clusters_for(n_polys: int, leaf: int | None = None) -> int:
@@ -89,6 +106,90 @@ def n_clusters_for(n_polys: int, leaf: int | None = None) -> int:
 
 
 @dataclass(frozen=True)
+class SceneIndex:
+    """The stored index (as the kernel reads it) plus build-time facts."""
+
+    origin: np.ndarray  # float32 (3,)
+    cell: float  # s, a power of two
+    dims: tuple[int, int, int]
+    cap: np.float32  # D
+    cell_list: np.ndarray  # uint16 (n_cells,), node of cell i + nx (j + ny k): < n_lists a list id, else inner
+    list_start: np.ndarray  # uint16 (n_lists + 1,)
+    entries: np.ndarray  # uint16 polytope indices
+    poly_first: np.ndarray  # uint16 (n_polys,), first plane of each polytope
+    kappa: float | None = None  # the build kappa of the tightness slack (17 + log L) / kappa (not stored)
+    children: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))  # uint16 (8 n_inner,)
+    # build-time only (not stored): per non-empty leaf [list id, depth, polytopes, planes, expensive planes]
+    work: np.ndarray | None = field(default=None, compare=False)
+
+    @property
+    def n_inner(self) -> int:
+        return len(self.children) // 8
+
+    def leaves(self) -> list[tuple[int, int]]:
+        """(list id, depth) of every leaf reachable from a cell (depth 0: the cell itself)."""
+        out, todo = set(), [(int(v), 0) for v in np.unique(self.cell_list)]
+        seen = set()
+        while todo:
+            v, d = todo.pop()
+            if v < self.n_lists:
+                out.add((v, d))
+            elif (v, d) not in seen:
+                seen.add((v, d))
+                b = v - self.n_lists
+                todo += [(int(c), d + 1) for c in self.children[8 * b : 8 * b + 8]]
+        return sorted(out)
+
+    def lookup(self, cell: np.ndarray, t: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """(list id, depth) for cells (>= 0) and the float32 cell coordinates t (3 arrays) the kernel
+        computed: the descent of polycc_barrier (t doubled, exactly, per level; octant from the parity)."""
+        v = self.cell_list.astype(np.int64)[cell]
+        depth = np.zeros(len(cell), np.int64)
+        s = [np.asarray(x, np.float32).copy() for x in t]
+        nl = self.n_lists
+        inner = v >= nl
+        while inner.any():
+            for a in s:
+                a[inner] = a[inner] * np.float32(2.0)
+            o = sum(((s[b][inner].astype(np.int64) & 1) << b) for b in range(3))
+            v[inner] = self.children.astype(np.int64)[8 * (v[inner] - nl) + o]
+            depth[inner] += 1
+            inner = v >= nl
+        return v, depth
+
+    @property
+    def n_cells(self) -> int:
+        return int(np.prod(self.dims))
+
+    @property
+    def n_lists(self) -> int:
+        return len(self.list_start) - 1
+
+    def nbytes(self) -> int:
+        return index_bytes(self.n_cells, self.n_inner, self.n_lists, len(self.entries), len(self.poly_first))
+
+    def lists(self) -> list[np.ndarray]:
+        return [self.entries[int(a):int(b)] for a, b in zip(self.list_start[:-1], self.list_start[1:])]
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """The five stored uint16 arrays, in image order."""
+        return self.cell_list, self.children, self.list_start, self.entries, self.poly_first
+
+    def list_work(self, counts: np.ndarray) -> np.ndarray:
+        """(n_lists, 2): polytopes and half-planes of each list (``counts``: half-planes per polytope)."""
+        counts = np.asarray(counts, np.int64)
+        rows = [[len(x), int(counts[x.astype(np.int64)].sum())] for x in self.lists()]
+        return np.array(rows, np.int64).reshape(-1, 2)
+
+    def record(self) -> dict:
+        """The values of the C struct polycc_index_t (without its pointers)."""
+        return {"ox": np.float32(self.origin[0]), "oy": np.float32(self.origin[1]), "oz": np.float32(self.origin[2]),
+                "inv_cell": np.float32(1.0 / self.cell), "cap": np.float32(self.cap), "nx": self.dims[0],
+                "ny": self.dims[1], "nz": self.dims[2], "n_lists": self.n_lists, "n_entries": len(self.entries),
+                "n_inner": self.n_inner}
+
+
+@dataclass(frozen=True)
 class PackedScene:
     """The arrays of one ``polycc_scene_t``, exactly as stored (raw) and as the C decodes them."""
 
@@ -100,6 +201,7 @@ class PackedScene:
     coord_bound: np.float32
     log_lmax: np.float32
     order: np.ndarray | None = None  # order[i] = input index of packed polytope i
+    index: SceneIndex | None = None  # spatial index (docs/barrier.md section 9), None: every polytope, no cap
 
     @property
     def n_polys(self) -> int:
@@ -145,22 +247,58 @@ class PackedScene:
 
     def flash_bytes(self) -> int:
         """Bytes of the arrays plus the root struct on a 32-bit target (= layout_bytes)."""
-        return layout_bytes(self.n_polys, self.n_planes, self.n_clusters, self.n_normals)
+        return layout_bytes(self.n_polys, self.n_planes, self.n_clusters, self.n_normals,
+                            self.index.nbytes() if self.index is not None else 0)
+
+    def with_index(self, index: SceneIndex | None) -> "PackedScene":
+        """The same scene with this spatial index (None: without one)."""
+        return PackedScene(self.normals, self.planes, self.polys_raw, self.clusters, self.quantum, self.coord_bound,
+                           self.log_lmax, self.order, index)
 
     def bytes_per_plane(self) -> float:
         return self.flash_bytes() / max(1, self.n_planes)
 
     def to_bytes(self) -> bytes:
-        """Flat image: header (format, counts, constants), clusters, polys, planes, normals."""
+        """Flat image: header (format, counts, constants), clusters, polys, planes, normals, then, with
+        an index, its header (INDEX_HEADER) and its uint16 arrays cell_list, list_start, entries,
+        poly_first, each padded to 4 bytes with zeros."""
         head = HEADER.pack(SCENE_FORMAT, self.n_clusters, self.n_polys, self.n_planes, self.n_normals,
                            float(self.quantum), float(self.coord_bound), float(self.log_lmax))
-        return head + self.clusters.tobytes() + self.polys_raw.tobytes() + self.planes.tobytes() + \
+        body = head + self.clusters.tobytes() + self.polys_raw.tobytes() + self.planes.tobytes() + \
             self.normals.tobytes()
+        if self.index is None:
+            return body
+        ix = self.index
+        r = ix.record()
+        out = [body, INDEX_HEADER.pack(*(r[k] for k in INDEX_DTYPE_FIELDS))]
+        for a in ix.arrays():
+            b = np.asarray(a, "<u2").tobytes()
+            out.append(b + bytes(-len(b) % 4))
+        return b"".join(out)
 
     def without_polytopes(self) -> "PackedScene":
         """The same constants with no polytopes (an empty scene)."""
         return PackedScene(self.normals[:0], self.planes[:0], self.polys_raw[:0], self.clusters[:0], self.quantum,
                            self.coord_bound, self.log_lmax)
+
+    def index_leaf(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(list id, depth) the kernel looks up for each state of p (n, 3) (float32 ops as in the C);
+        list id -1 outside the grid box B (the kernel returns the cap D there)."""
+        p = np.asarray(p, np.float32).reshape(-1, 3)
+        r = self.index.record()
+        with np.errstate(all="ignore"):
+            t = [(p[:, i] - r[o]) * r["inv_cell"] for i, o in enumerate(("ox", "oy", "oz"))]
+            inside = np.ones(len(p), bool)
+            for ti, d in zip(t, ("nx", "ny", "nz")):
+                inside &= (ti >= np.float32(0)) & (ti < np.float32(r[d]))
+            ci = [np.where(inside, ti, 0).astype(np.int64) for ti in t]
+        cell = ci[0] + r["nx"] * (ci[1] + r["ny"] * ci[2])
+        out = np.full(len(p), -1, np.int64)
+        depth = np.zeros(len(p), np.int64)
+        w = np.nonzero(inside)[0]
+        if len(w):
+            out[w], depth[w] = self.index.lookup(cell[w], [ti[w] for ti in t])
+        return out, depth
 
 
 def decode_polys(raw: np.ndarray, clusters: np.ndarray, quantum) -> np.ndarray:
@@ -196,7 +334,18 @@ def scene_from_bytes(blob: bytes) -> PackedScene:
         arrays.append(np.frombuffer(blob, dt, n, off).copy())
         off += dt.itemsize * n
     clusters, polys, planes, normals = arrays
-    return PackedScene(normals, planes, polys, clusters, np.float32(q), np.float32(cb), np.float32(ll))
+    index = None
+    if len(blob) > off:
+        r = dict(zip(INDEX_DTYPE_FIELDS, INDEX_HEADER.unpack_from(blob, off)))
+        off += INDEX_HEADER.size
+        arrs = []
+        for m in (r["nx"] * r["ny"] * r["nz"], 8 * r["n_inner"], r["n_lists"] + 1, r["n_entries"], n_polys):
+            arrs.append(np.frombuffer(blob, "<u2", m, off).copy())
+            off += _pad4(m)
+        index = SceneIndex(np.array([r["ox"], r["oy"], r["oz"]], np.float32), 1.0 / float(np.float32(r["inv_cell"])),
+                           (r["nx"], r["ny"], r["nz"]), np.float32(r["cap"]), arrs[0], arrs[2], arrs[3], arrs[4],
+                           children=arrs[1])
+    return PackedScene(normals, planes, polys, clusters, np.float32(q), np.float32(cb), np.float32(ll), index=index)
 
 
 def _f32_up(x: float) -> np.float32:

@@ -89,7 +89,8 @@ def _run(cmd: list[str], cwd: Path, timeout: float = 120.0) -> subprocess.Comple
 def test_program() -> Path:
     """The semihosting bit-exactness program (polycc/sim/arm/main.c); returns the ELF path."""
     srcs = [ARM_DIR / "main.c", ARM_DIR / "startup.c", ARM_DIR / "semihost.c"]
-    return build("kernel_test", srcs, extra_headers=[ARM_DIR / "semihost.h"]) / "kernel_test.elf"
+    heads = [ARM_DIR / "semihost.h", ARM_DIR / "scene_image.h"]
+    return build("kernel_test", srcs, extra_headers=heads) / "kernel_test.elf"
 
 
 def run_qemu(elf: Path, scene: PackedScene, params: Params, x: np.ndarray, goal: np.ndarray,

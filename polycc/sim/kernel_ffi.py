@@ -103,6 +103,17 @@ class HostScene:
         self.c.polys = ffi.cast("const polycc_poly_t *", ffi.from_buffer(keep[1]))
         self.c.planes = ffi.cast("const polycc_plane_t *", ffi.from_buffer(keep[2]))
         self.c.normals = ffi.cast("const polycc_normal_t *", ffi.from_buffer(keep[3]))
+        self.c.index = ffi.NULL
+        ix = self.packed.index
+        if ix is not None:
+            self._ix = ffi.new("polycc_index_t *")
+            for k, v in ix.record().items():
+                setattr(self._ix, k, float(v) if isinstance(v, np.floating) else int(v))
+            self._ix_arrays = [np.ascontiguousarray(a, np.uint16) if len(a) else np.zeros(2, np.uint16)
+                               for a in ix.arrays()]
+            for name, a in zip(("cell_list", "children", "list_start", "entries", "poly_first"), self._ix_arrays):
+                setattr(self._ix, name, ffi.cast("const uint16_t *", ffi.from_buffer(a)))
+            self.c.index = self._ix
 
 
 def c_params(params: Params):
@@ -137,18 +148,30 @@ GENERATED_SOURCE = """
 #include "polytopes.h"
 """ + BATCH_SOURCE + """
 const polycc_scene_t *polycc_generated_scene(void) { return &polycc_scene; }
-/* The flat image of PackedScene.to_bytes(): 8 header words, clusters, polys, planes, normals. */
+/* The flat image of PackedScene.to_bytes(): 8 header words, clusters, polys, planes, normals, then the
+ * index (its 9 header words and five uint16 arrays, each padded to 4 bytes) if there is one. */
+#define PAD4(n) (((n) * 2u + 3u) / 4u * 4u)
 size_t polycc_generated_image(unsigned char *out, size_t cap)
 {
     const polycc_scene_t *s = &polycc_scene;
-    size_t parts[5], n = 0, i;
-    const void *src[5];
+    const polycc_index_t *ix = s->index;
+    size_t parts[11], n = 0, i, np = 5u;
+    const void *src[11];
     src[0] = s; parts[0] = 8u * 4u;
     src[1] = s->clusters; parts[1] = s->n_clusters * sizeof(polycc_cluster_t);
     src[2] = s->polys; parts[2] = s->n_polys * sizeof(polycc_poly_t);
     src[3] = s->planes; parts[3] = s->n_planes * sizeof(polycc_plane_t);
     src[4] = s->normals; parts[4] = s->n_normals * sizeof(polycc_normal_t);
-    for (i = 0; i < 5u; ++i) {
+    if (ix != NULL) {
+        src[5] = ix; parts[5] = 9u * 4u;
+        src[6] = ix->cell_list; parts[6] = PAD4((size_t)ix->nx * ix->ny * ix->nz);
+        src[7] = ix->children; parts[7] = PAD4((size_t)ix->n_inner * 8u);
+        src[8] = ix->list_start; parts[8] = PAD4((size_t)ix->n_lists + 1u);
+        src[9] = ix->entries; parts[9] = PAD4((size_t)ix->n_entries);
+        src[10] = ix->poly_first; parts[10] = PAD4((size_t)s->n_polys);
+        np = 11u;
+    }
+    for (i = 0; i < np; ++i) {
         if (out != NULL && n + parts[i] <= cap) {
             memcpy(out + n, src[i], parts[i]);
         }

@@ -107,7 +107,8 @@ def arm_program():
     from polycc.sim import kernel_arm as KA
 
     srcs = [KA.ARM_DIR / "shield_main.c", KA.ARM_DIR / "startup.c", KA.ARM_DIR / "semihost.c", *SHIELD_SOURCES]
-    return KA.build("shield_test", srcs, extra_headers=[KA.ARM_DIR / "semihost.h", *SHIELD_HEADERS]) / "shield_test.elf"
+    heads = [KA.ARM_DIR / "semihost.h", KA.ARM_DIR / "scene_image.h", *SHIELD_HEADERS]
+    return KA.build("shield_test", srcs, extra_headers=heads) / "shield_test.elf"
 
 
 def arm_run(elf, scene, prm: ShieldParams, rows: np.ndarray, timeout: float = 600.0) -> np.ndarray:

@@ -33,7 +33,8 @@ def table_bytes(sw: Swarm) -> bytes:
 
 def test_program() -> Path:
     srcs = [ARM_DIR / "swarm_main.c", SRC / "polycc_swarm.c", ARM_DIR / "startup.c", ARM_DIR / "semihost.c"]
-    return build("swarm_test", srcs, extra_headers=[ARM_DIR / "semihost.h", SRC / "polycc_swarm.h"]) / "swarm_test.elf"
+    heads = [ARM_DIR / "semihost.h", ARM_DIR / "scene_image.h", SRC / "polycc_swarm.h"]
+    return build("swarm_test", srcs, extra_headers=heads) / "swarm_test.elf"
 
 
 def run_qemu(elf: Path, scene: PackedScene, params: Params, v_nbr: float, cases, timeout: float = 600.0):

@@ -106,3 +106,48 @@ def arm_or_skip():
     return kernel_arm
 
 
+
+
+def indexed_scene(name: str, cap: float = 0.6, cell: float = 1.0, target_cycles: float | None = 30_000.0):
+    """``scene(name)`` with a spatial index (octree refined towards ``target_cycles``)."""
+    return _indexed(name, float(cap), float(cell), target_cycles)
+
+
+@lru_cache(maxsize=None)
+def _indexed(name, cap, cell, target):
+    from polycc.onboard.index import build_index
+
+    sc = scene(name)
+    return sc.with_index(build_index(sc, cap, cell, target=target))
+
+
+def index_states(sc, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Adversarial states for an indexed scene: grid points (cell corners) exactly and one float32 ulp
+    either side, points on cell faces, the centres and corners of the leaves with the longest lists
+    (near many polytopes), points just outside each face of the grid box B and far outside it."""
+    rng = np.random.default_rng(seed)
+    ix = sc.index
+    o = np.asarray(ix.origin, np.float64)
+    dims = np.array(ix.dims)
+    s = ix.cell
+    ijk = rng.integers(0, dims + 1, (n // 4, 3))
+    corners = (o + ijk * s).astype(np.float32)
+    ulp = np.nextafter(corners, np.float32(np.inf)), np.nextafter(corners, np.float32(-np.inf))
+    faces = o + (ijk + rng.uniform(0, 1, (n // 4, 3)) * (rng.integers(0, 3, (n // 4, 1)) != np.arange(3))) * s
+    # leaves with the longest lists: sample their boxes (corners, centres, random)
+    work = ix.list_work(sc.polys["count"])
+    lid, _ = sc.index_leaf(rng.uniform(o, o + dims * s, (20_000, 3)))
+    busy = rng.uniform(o, o + dims * s, (20_000, 3))
+    w = np.where(lid >= 0, work[np.maximum(lid, 0), 1], -1)
+    near = busy[np.argsort(-w)[: n // 8]] + rng.normal(size=(n // 8, 3)) * 10.0 ** rng.uniform(-6, -2, (n // 8, 1))
+    # outside B, just beyond every face and far
+    hi = o + dims * s
+    k = n // 8
+    out = rng.uniform(o - 1, hi + 1, (k, 3))
+    ax = rng.integers(0, 3, k)
+    side = rng.integers(0, 2, k)
+    step = 10.0 ** rng.uniform(-6, 0, k)
+    out[np.arange(k), ax] = np.where(side, hi[ax] + step, o[ax] - step)
+    x = np.vstack([corners, ulp[0], ulp[1], faces, near, out]).astype(np.float32)
+    goal = rng.uniform(o, hi, (len(x), 3)).astype(np.float32)
+    return x, goal

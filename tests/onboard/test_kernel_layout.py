@@ -82,7 +82,7 @@ def test_image_round_trip_and_decode():
     sc = pack_scene(polys)
     back = scene_from_bytes(sc.to_bytes())
     assert back.to_bytes() == sc.to_bytes()
-    assert len(sc.to_bytes()) == sc.flash_bytes() - 16  # minus the four pointers of the root struct
+    assert len(sc.to_bytes()) == sc.flash_bytes() - 20  # minus the five pointers of the root struct
     assert sorted(sc.order.tolist()) == list(range(23))
     for a, b in zip(back.polytopes(), sc.polytopes()):
         assert np.array_equal(a, b)
@@ -104,7 +104,7 @@ def test_layout_bytes_is_exact():
         assert sc.n_clusters == n_clusters_for(n)
         assert sc.flash_bytes() == layout_bytes(sc.n_polys, sc.n_planes, n_clusters_for(n), sc.n_normals)
         assert sc.flash_bytes() == ROOT_BYTES + len(sc.to_bytes()) - 32
-    assert layout_bytes(1000, 8000, 32, 400) == 48 + 4 * 8000 + 16 * 1000 + 32 * 32 + 12 * 400
+    assert layout_bytes(1000, 8000, 32, 400) == 52 + 4 * 8000 + 16 * 1000 + 32 * 32 + 12 * 400
 
 
 def test_lead_planes_face_their_octant():

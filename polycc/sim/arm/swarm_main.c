@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "polycc_swarm.h"
+#include "scene_image.h"
 #include "semihost.h"
 
 #define SCENE_MAX (96u * 1024u)
@@ -31,33 +32,21 @@ int main(void)
     polycc_scene_t scene;
     polycc_params_t params;
     float v_nbr;
-    uint32_t head[8], n, done = 0;
-    const uint8_t *base = (const uint8_t *)scene_buf;
-    int fs, fi, fo;
+    polycc_index_t index;
+    uint32_t n, done = 0;
+    int fs, fi, fo, got;
 
     fs = semihost_open("scene.bin", 1);
-    if (fs < 0 || semihost_read(fs, scene_buf, sizeof scene_buf) < (int)sizeof head) {
+    if (fs < 0) {
         semihost_puts("cannot read scene.bin\n");
         return 2;
     }
+    got = semihost_read(fs, scene_buf, sizeof scene_buf);
     semihost_close(fs);
-    memcpy(head, scene_buf, sizeof head);
-    scene.format = head[0];
-    scene.n_clusters = head[1];
-    scene.n_polys = head[2];
-    scene.n_planes = head[3];
-    scene.n_normals = head[4];
-    memcpy(&scene.quantum, &head[5], 4);
-    memcpy(&scene.coord_bound, &head[6], 4);
-    memcpy(&scene.log_lmax, &head[7], 4);
-    base += sizeof head;
-    scene.clusters = (const polycc_cluster_t *)(const void *)base;
-    base += POLYCC_CLUSTER_BYTES * scene.n_clusters;
-    scene.polys = (const polycc_poly_t *)(const void *)base;
-    base += POLYCC_POLY_BYTES * scene.n_polys;
-    scene.planes = (const polycc_plane_t *)(const void *)base;
-    base += POLYCC_PLANE_BYTES * scene.n_planes;
-    scene.normals = (const polycc_normal_t *)(const void *)base;
+    if (polycc_scene_from_image(&scene, &index, scene_buf, (size_t)got) != 0) {
+        semihost_puts("cannot read scene.bin\n");
+        return 2;
+    }
 
     fi = semihost_open("states.bin", 1);
     fo = semihost_open("out.bin", 5);

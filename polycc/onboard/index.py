@@ -1,0 +1,339 @@
+"""Build-time spatial index of a packed scene: a uniform grid whose cells list the only polytopes the
+kernel evaluates there, with a clearance cap D (docs/barrier.md section 9).  World frame, metres.
+
+Certificate (exact reals, decoded values; float64 here with outward cushions):
+
+* the kernel maps p to cell (i, j, k) = floor((p - origin) / s) in float32; every cell is certified
+  over its box grown by ``eps`` (the float32 rounding of that lookup, a few ulps of |p|);
+* per cell box (centre c, half side h): U = min_k max_l (g_kl(c) + h |n_kl|_1) is the exact maximum
+  of min_k phi_k over the box (a convex function of p has its maximum over a box at a corner; the
+  max of linear functions over the box is the per-plane maximum);
+* polytope k is LEFT OUT only if LB_k >= min(U, D) + slack, LB_k = max(max_l (g_kl(c) - h |n_kl|_1),
+  gamma_k (dist(box, c_k) - R_k)), a lower bound of phi_k over the box;
+* then min(psi0, D) over the listed polytopes stays below h = min_k phi_k (section 9);
+* outside the grid box B every polytope has phi_k >= gamma_k (|p - c_k| - R_k) >= D + slack, so the
+  kernel returns D there with no polytope evaluated.
+
+The certified worst case of one evaluation is the largest cycle count of the cycle model over the
+cells (every listed polytope entered, evaluated and all its half-planes scanned) and the outside path.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from polycc.errors import PolyccError
+from polycc.onboard.layout import PackedScene, SceneIndex, index_bytes
+
+DEFAULT_CLEARANCE_CAP = 0.3  # m (measured: the make-demo build keeps n = 396 at 500 Hz / 20 %; 0.6 m forces n = 158)
+DEFAULT_CELLS = (0.25, 0.5, 1.0)  # cell sizes s (powers of two, metres) tried by choose_index
+NEGLIGIBLE_NATS = 17.0
+_CUSHION = 1e-9  # relative outward cushion of the float64 geometry (errors are ~1e-15 relative)
+
+
+
+
+def _poly_geometry(packed: PackedScene):
+    P = packed.polys
+    c = np.stack([P["cx"], P["cy"], P["cz"]], axis=1).astype(np.float64)
+    R = P["r_out"].astype(np.float64)
+    ig = P["inv_gamma"].astype(np.float64)
+    return c, R, ig
+
+
+def lookup_eps(extent: float) -> float:
+    """Bound on how far (metres) outside its box a point can be that the float32 lookup maps into a
+    cell: one rounding of p - origin (half an ulp of numbers below ``extent``), generously 2^-22 extent."""
+    return 2.0**-22 * (extent + 1.0)
+
+
+def _face_bound(n: np.ndarray, d: np.ndarray, e: np.ndarray, delta: float) -> float:
+    """X such that phi(p) = max_l (n_l . p - d_l) >= delta whenever e . p >= X (|p|_inf <= POS_MAX),
+    e a unit axis vector.  From the dual of max e.p s.t. n_l.p <= d_l + delta: with lambda >= 0,
+    Lam = sum lambda, r = sum lambda_l n_l - e (computed exactly in rationals),
+    Lam phi(p) >= sum lambda_l g_l(p) = e.p + r.p - lambda.d, so X = Lam delta + lambda.d + |r|_1 POS_MAX
+    (rounded up) is certified whatever the LP solver's accuracy."""
+    from fractions import Fraction
+
+    from scipy.optimize import linprog
+
+    res = linprog(-e, A_ub=n, b_ub=d + delta, bounds=[(None, None)] * 3, method="highs")
+    if res.status != 0:
+        raise PolyccError("index: the grid box LP failed (an unbounded polytope?)")
+    lam = np.maximum(-np.asarray(res.ineqlin.marginals, np.float64), 0.0)
+    F = Fraction
+    lamf = [F(float(x)) for x in lam]
+    Lam = sum(lamf)
+    if Lam <= 0:
+        raise PolyccError("index: degenerate grid box certificate")
+    r = [sum(lf * F(float(n[i, j])) for i, lf in enumerate(lamf)) - F(float(e[j])) for j in range(3)]
+    lam_d = sum(lf * F(float(di)) for lf, di in zip(lamf, d))
+    X = Lam * F(delta) + lam_d + sum(abs(x) for x in r) * F(_POS_MAX)
+    out = float(X)
+    return out if F(out) >= X else float(np.nextafter(out, np.inf))
+
+
+_POS_MAX = 1.0e5  # POLYCC_POS_MAX: larger coordinates are invalid input
+
+
+def grid_box(packed: PackedScene, delta: float, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) such that every polytope has phi_k(p) >= delta at every p outside [lo, hi]
+    (certified per face): the union of the polytopes grown by delta, boxed.  A polytope with the axis
+    plane +-e itself (n = e exactly) needs no LP: phi >= +-p_i - d >= delta beyond d + delta.
+    ``cache`` (a dict kept by the caller) memoises the per-polytope faces across packings."""
+    from fractions import Fraction
+
+    pm = packed.plane_matrix().astype(np.float64)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for p in packed.polys:
+        rows = pm[int(p["first"]) : int(p["first"]) + int(p["count"])]
+        key = (rows.tobytes(), float(delta))
+        if cache is not None and key in cache:
+            f_lo, f_hi = cache[key]
+        else:
+            f_lo, f_hi = np.empty(3), np.empty(3)
+            for j in range(3):
+                for sign, outv in ((1.0, f_hi), (-1.0, f_lo)):
+                    e = np.zeros(3)
+                    e[j] = sign
+                    exact = np.nonzero(np.all(rows[:, :3] == e, axis=1))[0]
+                    if len(exact):  # X = d + delta, rounded up (exact rationals)
+                        X = Fraction(float(np.min(rows[exact, 3]))) + Fraction(delta)
+                        b = float(X)
+                        b = b if Fraction(b) >= X else float(np.nextafter(b, np.inf))
+                    else:
+                        b = _face_bound(rows[:, :3], rows[:, 3], e, delta)
+                    outv[j] = b if sign > 0 else -b
+            if cache is not None:
+                cache[key] = (f_lo, f_hi)
+        lo, hi = np.minimum(lo, f_lo), np.maximum(hi, f_hi)
+    return lo, hi
+
+
+def _default_cost(polys, planes):
+    """A proxy of the cycle model (polycc.budget.cycle_model.indexed_cycles) for callers without it."""
+    return 250.0 * np.asarray(polys, np.float64) + 70.0 * np.asarray(planes, np.float64)
+
+
+class _Geometry:
+    """Plane rows of the scene and the per-box bounds of section 9 (float64, outward cushions)."""
+
+    def __init__(self, packed: PackedScene, D: float, slack: float, eps: float, cut: float):
+        self.pm = packed.plane_matrix().astype(np.float64)
+        self.w1 = np.abs(self.pm[:, :3]).sum(axis=1)
+        self.first = packed.polys["first"].astype(np.int64)
+        self.count = packed.polys["count"].astype(np.int64)
+        self.c, self.R, self.ig = _poly_geometry(packed)
+        self.lead = packed.polys["lead"].astype(np.int64)  # (n, 8) lead plane per octant
+        self.D, self.slack, self.eps = D, slack, eps
+        self.cut = cut
+
+    def listed(self, centres: np.ndarray, half: float, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((m, len(cand)) bool, (m, len(cand)) int): which candidate polytopes each box (centre, half side
+        ``half`` grown by eps) must list, and how many of each one's half-planes can take the soft-max's
+        expensive path there (a new maximum or an accumulated term, one exp each): g_l above the lead
+        plane's minimum over the box minus the negligible cut (the running maximum is at least the lead's
+        value).  U is taken over the candidates only (an upper bound all the same)."""
+        h = half + self.eps
+        cand = np.asarray(cand, np.int64)
+        if len(cand) == 0:
+            return np.zeros((len(centres), 0), bool), np.zeros((len(centres), 0), np.int64)
+        rows = np.concatenate([np.arange(self.first[k], self.first[k] + self.count[k]) for k in cand])
+        seg = np.r_[0, np.cumsum(self.count[cand])[:-1]]
+        pm = self.pm[rows]
+        g = centres @ pm[:, :3].T - pm[:, 3]
+        tol = _CUSHION * (1.0 + np.abs(centres).sum(axis=1)[:, None] + np.abs(pm[:, 3])[None, :])
+        UBp = g + h * self.w1[rows] + tol
+        LBp = g - h * self.w1[rows] - tol
+        UB = np.maximum.reduceat(UBp, seg, axis=1)
+        LB = np.maximum.reduceat(LBp, seg, axis=1)
+        owner = np.repeat(np.arange(len(cand)), self.count[cand])
+        # the lead plane the kernel scans first is the one of the octant of p - c_k; over the box only
+        # the octants whose signs occur there are possible (-0.0 counts negative, as in the kernel)
+        cc = self.c[cand]
+        pos = (centres[:, None, :] + h) >= cc[None]  # u_i >= 0 possible
+        neg = (centres[:, None, :] - h) <= cc[None]  # u_i <= 0 possible
+        bits = ((np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1).astype(bool)  # (8, 3)
+        allowed = np.all(np.where(bits[None, None], neg[:, :, None, :], pos[:, :, None, :]), axis=3)  # (m, J, 8)
+        lead_rows = seg[:, None] + self.lead[cand]  # (J, 8)
+        lead_lb = np.where(allowed, LBp[:, lead_rows], np.inf).min(axis=2)
+        acc = np.add.reduceat((UBp > lead_lb[:, owner] - self.cut).astype(np.int64), seg, axis=1)
+        cc, R, ig = self.c[cand], self.R[cand], self.ig[cand]
+        dbox = np.linalg.norm(np.maximum(np.abs(centres[:, None, :] - cc[None]) - h, 0.0), axis=2)
+        lb_ball = (dbox * (1 - _CUSHION) - R) / ig - _CUSHION * (1.0 + dbox + R)
+        LB = np.maximum(LB, lb_ball)
+        thr = np.minimum(UB.min(axis=1), self.D) + self.slack
+        return LB < thr[:, None], acc
+
+
+def leaf_work(packed: PackedScene, kappa: float = 100.0) -> np.ndarray:
+    """(leaves, 5) int: list id, depth, listed polytopes, their half-planes and the half-planes that can
+    take the expensive soft-max path, for every non-empty leaf box of the index (recomputed from the
+    tree when the index was not built in this process; ``kappa`` the build kappa)."""
+    ix = packed.index
+    if ix.work is not None and (ix.kappa is None or ix.kappa == kappa):
+        return ix.work
+    D = float(ix.cap)
+    lo = np.asarray(ix.origin, np.float64)
+    dims = np.array(ix.dims)
+    extent = float(np.max(np.abs(np.r_[lo, lo + dims * ix.cell]))) + 2.0 * max(ix.cell, float(np.max(dims * ix.cell)))
+    geo = _Geometry(packed, D, index_slack(packed, kappa), lookup_eps(extent), NEGLIGIBLE_NATS / kappa)
+    lists = ix.lists()
+    offs = np.array([[(o >> b) & 1 for b in range(3)] for o in range(8)], np.float64) - 0.5
+    out = []
+    todo = []
+    nx, ny, _ = ix.dims
+    for c, v in enumerate(ix.cell_list.astype(np.int64)):
+        ijk = np.array([c % nx, (c // nx) % ny, c // (nx * ny)])
+        todo.append((int(v), lo + (ijk + 0.5) * ix.cell, 0.5 * ix.cell, 0))
+    while todo:
+        v, cen, half, depth = todo.pop()
+        if v >= ix.n_lists:
+            b = v - ix.n_lists
+            for o in range(8):
+                todo.append((int(ix.children[8 * b + o]), cen + offs[o] * half, half / 2, depth + 1))
+            continue
+        lst = lists[v].astype(np.int64)
+        if len(lst) == 0:
+            continue
+        _, acc = geo.listed(cen[None], half, lst)
+        out.append([v, depth, len(lst), int(geo.count[lst].sum()), int(acc.sum())])
+    return np.array(out, np.int64).reshape(-1, 5)
+
+
+def index_slack(packed: PackedScene, kappa: float) -> float:
+    """The tightness slack (17 + log L_max) / kappa of section 4, metres."""
+    return (NEGLIGIBLE_NATS + float(packed.log_lmax)) / kappa
+
+
+def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: float = 1.0, kappa: float = 100.0,
+                target: float | None = None, max_bytes: int | None = None, cost=None, max_depth: int = 4,
+                max_cells: int = 65535, box: tuple | None = None) -> SceneIndex:
+    """The grid index of ``packed`` with clearance cap ``cap`` (D, metres) and top cell size ``cell``
+    (a power of two, metres); the tightness slack is (17 + log L_max) / kappa.
+
+    Refinement: the leaf with the largest ``cost(polys, planes)`` (default a proxy of the cycle model;
+    the budget passes the model itself, depth included) is split into its 8 octants, up to
+    ``max_depth`` levels, until the largest cost is at most ``target`` or the index would exceed
+    ``max_bytes`` (None: no such limit; target None: refine as long as the worst leaf can be split
+    within the bytes).  ``box`` is :func:`grid_box` (packed, D + slack) if the caller has it."""
+    import heapq
+
+    if cell <= 0 or math.log2(cell) != int(math.log2(cell)):
+        raise PolyccError(f"index cell size {cell} must be a power of two (metres)")
+    if not cap > 0:
+        raise PolyccError(f"--clearance-cap must be positive (got {cap})")
+    n = packed.n_polys
+    if n == 0:
+        raise PolyccError("an index needs at least one polytope")
+    if packed.n_planes > 65535:
+        raise PolyccError("the index stores uint16 first-plane indices: at most 65535 half-planes")
+    cost = cost or (lambda m, planes, depth, acc: _default_cost(m, planes) + 120.0 * acc)
+    D = float(np.float32(cap))
+    slack = index_slack(packed, kappa)
+    lo, hi = box if box is not None else grid_box(packed, D + slack)
+    lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
+    extent = float(np.max(np.abs(np.r_[lo, hi]))) + 2.0 * max(cell, float(np.max(hi - lo)))
+    eps = lookup_eps(extent)
+    lo, hi = lo - 2 * eps, hi + 2 * eps
+    while True:  # a large box B (sharp polytopes grow far by delta) gets larger top cells: they are cheap
+        origin = np.floor(lo / cell) * cell
+        dims = np.maximum(1, np.ceil((hi - origin) / cell).astype(np.int64))
+        if np.all(dims <= 65535) and int(np.prod(dims)) <= max_cells:
+            break
+        cell *= 2.0
+    nx, ny, nz = (int(v) for v in dims)
+    ii, jj, kk = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    idx = np.stack([ii.ravel(order="F"), jj.ravel(order="F"), kk.ravel(order="F")], axis=1)  # i fastest
+    centres = origin + (idx + 0.5) * cell
+    geo = _Geometry(packed, D, slack, eps, NEGLIGIBLE_NATS / kappa)
+    allk = np.arange(n)
+    parts = [geo.listed(centres[i:i + 2048], 0.5 * cell, allk) for i in range(0, len(centres), 2048)]
+    listed = np.concatenate([a for a, _ in parts])
+    accs = np.concatenate([b for _, b in parts])
+    count = geo.count
+    # nodes: [centre, half, depth, list (polytope indices) or None, children or None, expensive planes]
+    nodes = [[centres[i], 0.5 * cell, 0, np.nonzero(listed[i])[0], None, int(accs[i][listed[i]].sum())]
+             for i in range(len(centres))]
+    refs: dict[bytes, int] = {}
+
+    def key(lst):
+        return np.asarray(lst, np.int64).tobytes()
+
+    for nd in nodes:
+        refs[key(nd[3])] = refs.get(key(nd[3]), 0) + 1
+    entries = sum(len(np.frombuffer(k, np.int64)) for k in refs)
+
+    def nbytes(n_inner):
+        return index_bytes(len(centres), n_inner, len(refs), entries, n)
+
+    def node_cost(nd):
+        return float(cost(len(nd[3]), int(count[nd[3]].sum()), nd[2], nd[5]))
+
+    heap = [(-node_cost(nd), i) for i, nd in enumerate(nodes) if len(nd[3])]
+    heapq.heapify(heap)
+    n_inner = 0
+    offs = np.array([[(o >> b) & 1 for b in range(3)] for o in range(8)], np.float64) - 0.5
+    while heap:
+        c0, i = heap[0]
+        nd = nodes[i]
+        if target is not None and -c0 <= target:
+            break
+        if nd[2] >= max_depth:
+            break  # the worst leaf cannot be split: the worst case stays
+        half = nd[1] / 2
+        kc = nd[0] + offs * nd[1]  # child centres (octant o: bit set = upper half)
+        sub, sub_acc = geo.listed(kc, half, nd[3])
+        kids = [nd[3][sub[o]] for o in range(8)]
+        kid_acc = [int(sub_acc[o][sub[o]].sum()) for o in range(8)]
+        # bytes after the split
+        new_refs = dict(refs)
+        new_entries = entries
+        k0 = key(nd[3])
+        new_refs[k0] -= 1
+        if new_refs[k0] == 0:
+            del new_refs[k0]
+            new_entries -= len(nd[3])
+        for kl in kids:
+            kk_ = key(kl)
+            if kk_ not in new_refs:
+                new_entries += len(kl)
+            new_refs[kk_] = new_refs.get(kk_, 0) + 1
+        if len(new_refs) + n_inner + 1 > 65535 or new_entries > 65535 or (
+                max_bytes is not None and index_bytes(len(centres), n_inner + 1, len(new_refs), new_entries, n)
+                > max_bytes):
+            break
+        heapq.heappop(heap)
+        refs, entries = new_refs, new_entries
+        n_inner += 1
+        nd[4] = []
+        for o in range(8):
+            child = [kc[o], half, nd[2] + 1, kids[o], None, kid_acc[o]]
+            nd[4].append(len(nodes))
+            nodes.append(child)
+            if len(kids[o]):
+                heapq.heappush(heap, (-node_cost(child), len(nodes) - 1))
+        nd[3] = None
+    # ids: lists first (empty list first, then by length), internal nodes after them
+    lists = sorted((np.frombuffer(k, np.int64) for k in refs), key=lambda x: (len(x), x.tolist()))
+    lid = {key(x): j for j, x in enumerate(lists)}
+    inner = [i for i, nd in enumerate(nodes) if nd[4] is not None]
+    nid = {i: len(lists) + j for j, i in enumerate(inner)}
+
+    def ref(i):
+        nd = nodes[i]
+        return nid[i] if nd[4] is not None else lid[key(nd[3])]
+
+    cell_list = np.array([ref(i) for i in range(len(centres))], np.uint16)
+    children = np.array([ref(c) for i in inner for c in nodes[i][4]], np.uint16)
+    starts = np.r_[0, np.cumsum([len(x) for x in lists])].astype(np.uint16)
+    ent = np.concatenate(lists).astype(np.uint16) if len(lists) and starts[-1] else np.zeros(0, np.uint16)
+    leaves = [nd for nd in nodes if nd[4] is None]
+    work = np.array([[lid[key(nd[3])], nd[2], len(nd[3]), int(count[nd[3]].sum()), nd[5]] for nd in leaves
+                     if len(nd[3])], np.int64).reshape(-1, 5)
+    out = SceneIndex(np.asarray(origin, np.float32), float(cell), (nx, ny, nz), np.float32(D), cell_list,
+                     starts, ent, geo.first.astype(np.uint16), float(kappa), children, work)
+    assert out.nbytes() == nbytes(n_inner)
+    return out
