@@ -30,6 +30,34 @@ def header(tmp_path_factory):
     return d / "polytopes.h"
 
 
+@pytest.fixture(scope="module")
+def indexed_header(tmp_path_factory):
+    """The same wall with the spatial index of `polycc build` (default clearance cap): the kernel itself
+    returns min(psi, D), flat beyond D."""
+    from polycc.onboard.index import DEFAULT_CLEARANCE_CAP, build_index
+    from polycc.onboard.layout import pack_scene
+
+    d = tmp_path_factory.mktemp("wall_ix")
+    packed = pack_scene([axis_box([WALL_X, -2, 0], [2.3, 2, 2])])
+    write_outputs(d, packed.with_index(build_index(packed, DEFAULT_CLEARANCE_CAP)), {"kappa": 100.0})
+    return d / "polytopes.h"
+
+
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+@pytest.mark.parametrize("speed", [1.0, 2.0, 3.0])
+def test_velocity_stream_at_a_wall_on_an_indexed_scene(indexed_header, dynamics, speed):
+    """Issue 15 x 18: the index's clearance cap (0.3 m by default) reaches the shield through the kernel,
+    not through psi_cap. Before the shield's brake fix the quadrotor ended 4.2 cm into the wall at 2 m/s
+    here; it must stop with clearance >= 0 and hold."""
+    m = _model(indexed_header, dynamics)
+    worst = _stream(m, (speed, 0.0, 0.0), 5.0)  # 1 m/s: the approach, the brake and the last creep into place
+    x_stop = float(m.dyn.p[0])
+    worst = min(worst, _stream(m, (speed, 0.0, 0.0), 2.0))
+    assert worst >= 0.0, f"indexed scene: {-worst:.3f} m into the r-ball of the wall"
+    assert _trace(m).backups > 0 and abs(float(m.dyn.v[0])) < 0.1
+    assert abs(float(m.dyn.p[0]) - x_stop) < 0.02
+
+
 def _model(header, dynamics="crazyflie", shield=True, start=(0.0, 0.0, 1.0), psi_cap=0.0) -> SitlDeviceModel:
     m = SitlDeviceModel(header, start=start, dynamics=dynamics)
     lib = m.app.lib
