@@ -488,8 +488,9 @@ uint32_t polycc_barrier(const polycc_scene_t *scene, const polycc_params_t *para
     return 0u;
 }
 
-/* Scales v in place to norm <= vmax; returns POLYCC_FLAG_SATURATED if it did. */
-static uint32_t polycc_saturate(float v[3], float vmax)
+/* Scales v in place to norm <= vmax; returns POLYCC_FLAG_SATURATED if it did (also used by the shield
+ * and the swarm step). */
+uint32_t polycc_saturate(float v[3], float vmax)
 {
     float n2 = (v[0] * v[0] + v[1] * v[1]) + v[2] * v[2];
     float s;

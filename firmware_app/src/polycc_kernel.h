@@ -66,6 +66,9 @@ typedef struct polycc_out {
 
 /* Fast exp for x <= 88.  exp(0) == 1 exactly; returns 0 for x < -87 (and NaN).
  * Relative error <= 3e-7 on [-87, 88] (measured: 2.54e-7; tests/test_kernel_fastmath.py). */
+/* Scales v (m/s) in place to |v| <= vmax; POLYCC_FLAG_SATURATED if it did, else 0. */
+uint32_t polycc_saturate(float v[3], float vmax);
+
 float polycc_exp(float x);
 /* Fast natural log for normal x > 0 (finite).  polycc_log(1) == 0 and polycc_log(x) >= 0
  * for x >= 1.  Absolute error <= 6e-7 on [1, 65536], relative <= 3e-7 above 1.001 (measured).

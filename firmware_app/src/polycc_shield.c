@@ -62,20 +62,6 @@ static float sh_dot(const float *a, const float *b)
     return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2];
 }
 
-/* Scales u down to |u| = vmax if longer; returns 1 if it did. */
-static int sh_saturate(float u[3], float vmax)
-{
-    float n2 = sh_dot(u, u), s;
-    if (n2 > vmax * vmax) {
-        s = vmax / sqrtf(n2);
-        u[0] = u[0] * s;
-        u[1] = u[1] * s;
-        u[2] = u[2] * s;
-        return 1;
-    }
-    return 0;
-}
-
 /* Last model index j >= i whose summed chord length from x_i (with slack) is <= c. */
 static uint32_t sh_cover(const polycc_shield_job_t *job, uint32_t i, float c)
 {
@@ -99,7 +85,7 @@ static void sh_candidate(polycc_shield_job_t *job, const polycc_shield_params_t 
     ud[0] = u_d[0];
     ud[1] = u_d[1];
     ud[2] = u_d[2];
-    if (sh_saturate(ud, q->v_max)) {
+    if (polycc_saturate(ud, q->v_max) != 0u) {
         job->flags |= POLYCC_SHIELD_SATURATED;
     }
     memcpy(job->u_d, ud, sizeof ud);
@@ -118,7 +104,7 @@ static void sh_candidate(polycc_shield_job_t *job, const polycc_shield_params_t 
             for (k = 0; k < 3; ++k) {
                 uc[k] = ud[k] + lam * g[k];
             }
-            (void)sh_saturate(uc, q->v_max);
+            (void)polycc_saturate(uc, q->v_max);
             if (sh_dot(g, uc) < b) {
                 job->flags |= POLYCC_SHIELD_INFEASIBLE;
             }

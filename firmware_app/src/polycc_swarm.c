@@ -148,20 +148,6 @@ float polycc_swarm_term(const polycc_nbr_t *nb, float r, float v, const float p[
     return (e - np) - mu;
 }
 
-static uint32_t sw_saturate(float u[3], float vmax)
-{
-    float n2 = (u[0] * u[0] + u[1] * u[1]) + u[2] * u[2];
-    float s;
-    if (!(n2 > vmax * vmax)) {
-        return 0u;
-    }
-    s = vmax / sqrtf(n2);
-    u[0] = u[0] * s;
-    u[1] = u[1] * s;
-    u[2] = u[2] * s;
-    return POLYCC_FLAG_SATURATED;
-}
-
 static void sw_zero(polycc_out_t *out, uint32_t flags)
 {
     memset(out, 0, sizeof *out);
@@ -189,7 +175,7 @@ uint32_t polycc_swarm_step(const polycc_scene_t *scene, const polycc_params_t *p
     for (i = 0; i < 3; ++i) {
         un[i] = h * (x[i] - goal[i]);
     }
-    flags |= sw_saturate(un, params->v_max);
+    flags |= polycc_saturate(un, params->v_max);
     kappa = params->kappa;
     c = out->psi;
     S = 1.0f;
@@ -249,7 +235,7 @@ uint32_t polycc_swarm_step(const polycc_scene_t *scene, const polycc_params_t *p
             out->u[i] = out->u[i] + lam * out->grad[i];
         }
         flags |= POLYCC_FLAG_ACTIVE;
-        flags |= sw_saturate(out->u, params->v_max);
+        flags |= polycc_saturate(out->u, params->v_max);
     }
     if (psi < 0.0f) {
         flags |= POLYCC_FLAG_INSIDE;

@@ -300,6 +300,14 @@ def _saturate(v: np.ndarray, vmax: np.float32) -> np.ndarray:
     return sat
 
 
+def saturate(u: np.ndarray, vmax) -> bool:
+    """Mirror of ``polycc_saturate`` on one float32 vector (3,), in place; True if it scaled it."""
+    rows = u.reshape(1, 3).copy()
+    sat = bool(_saturate(rows, F(vmax))[0])
+    u[:] = rows[0]
+    return sat
+
+
 def step(scene: PackedScene, params: Params, x: np.ndarray, goal: np.ndarray) -> dict[str, np.ndarray]:
     """Mirror of ``polycc_step`` for states x (n, 3) and goals (n, 3) or (3,).
 

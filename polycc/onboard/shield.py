@@ -113,14 +113,6 @@ def _dot(a, b) -> np.float32:
     return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
 
 
-def _saturate(u: np.ndarray, vmax) -> bool:
-    n2 = _dot(u, u)
-    if n2 > vmax * vmax:
-        s = vmax / np.sqrt(n2)
-        u[:] = [u[0] * s, u[1] * s, u[2] * s]
-        return True
-    return False
-
 
 def _psi(scene: PackedScene, q: dict, p) -> tuple[np.float32, np.ndarray, bool]:
     kp = B.Params(kappa=float(q["kappa"]), radius=float(q["radius"]), beta=1.0, c_clf=0.0, v_max=1.0)
@@ -177,7 +169,7 @@ def plan(scene: PackedScene, prm: ShieldParams, p, v, a0, u_app, u_d) -> Job:
 def _candidate(job: Job, q: dict, v, u_d) -> None:
     g = job.grad
     ud = u_d.copy()
-    if _saturate(ud, q["v_max"]):
+    if B.saturate(ud, q["v_max"]):
         job.flags |= SATURATED
     job.u_d = ud.copy()
     uc = ud.copy()
@@ -193,7 +185,7 @@ def _candidate(job: Job, q: dict, v, u_d) -> None:
         else:
             lam = (b - gu) / g2
             uc = np.array([ud[k] + lam * g[k] for k in range(3)], F)
-            _saturate(uc, q["v_max"])
+            B.saturate(uc, q["v_max"])
             if _dot(g, uc) < b:
                 job.flags |= INFEASIBLE
     job.u_c = uc

@@ -121,14 +121,6 @@ def term(nb: Neighbour, r, v, p) -> tuple[np.float32, bool]:
     return F((e - np_) - mu), ag
 
 
-def _saturate(u: np.ndarray, vmax) -> bool:
-    n2 = (u[0] * u[0] + u[1] * u[1]) + u[2] * u[2]
-    if not (n2 > vmax * vmax):
-        return False
-    s = vmax / np.sqrt(n2)
-    u[:] = (u * s).astype(F)
-    return True
-
 
 def _zero(flags: int) -> dict:
     z = np.zeros(3, F)
@@ -152,7 +144,7 @@ def step(scene, params: B.Params, sw: Swarm, v_nbr, x, goal) -> dict:
         flags = 0
         h = F(-0.5) * c_clf
         un = (h * (x - goal)).astype(F)
-        if _saturate(un, v_max):
+        if B.saturate(un, v_max):
             flags |= B.FLAG_SATURATED
         c = out["psi"]
         S = F(1.0)
@@ -190,7 +182,7 @@ def step(scene, params: B.Params, sw: Swarm, v_nbr, x, goal) -> dict:
             lam = -viol / g2
             u = (u + lam * grad).astype(F)
             flags |= B.FLAG_ACTIVE
-            if _saturate(u, v_max):
+            if B.saturate(u, v_max):
                 flags |= B.FLAG_SATURATED
         if psi < F(0):
             flags |= B.FLAG_INSIDE
