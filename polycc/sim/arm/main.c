@@ -22,40 +22,29 @@ static uint32_t scene_buf[SCENE_MAX / 4u];
 static float in_buf[CHUNK * 6u];
 static polycc_out_t out_buf[CHUNK];
 
-static int read_all(int fd, void *buf, size_t n)
-{
-    return semihost_read(fd, buf, n) == (int)n;
-}
-
 int main(void)
 {
     polycc_scene_t scene;
     polycc_params_t params;
     polycc_index_t index;
     uint32_t n, done = 0;
-    int fs, fi, fo, got;
+    int fi, fo, got;
 
-    fs = semihost_open("scene.bin", 1);
-    if (fs < 0) {
-        semihost_puts("cannot read scene.bin\n");
-        return 2;
-    }
-    got = semihost_read(fs, scene_buf, sizeof scene_buf);
-    semihost_close(fs);
-    if (polycc_scene_from_image(&scene, &index, scene_buf, (size_t)got) != 0) {
+    got = semihost_slurp("scene.bin", scene_buf, sizeof scene_buf);
+    if (got < 0 || polycc_scene_from_image(&scene, &index, scene_buf, (size_t)got) != 0) {
         semihost_puts("cannot read scene.bin\n");
         return 2;
     }
 
     fi = semihost_open("states.bin", 1);
     fo = semihost_open("out.bin", 5);
-    if (fi < 0 || fo < 0 || !read_all(fi, &params, sizeof params) || !read_all(fi, &n, sizeof n)) {
+    if (fi < 0 || fo < 0 || !semihost_read_all(fi, &params, sizeof params) || !semihost_read_all(fi, &n, sizeof n)) {
         semihost_puts("cannot open states.bin/out.bin\n");
         return 3;
     }
     while (done < n) {
         uint32_t k, m = n - done < CHUNK ? n - done : CHUNK;
-        if (!read_all(fi, in_buf, m * 6u * sizeof(float))) {
+        if (!semihost_read_all(fi, in_buf, m * 6u * sizeof(float))) {
             semihost_puts("short states.bin\n");
             return 4;
         }

@@ -47,3 +47,19 @@ void semihost_exit(int code)
     for (;;) {
     }
 }
+
+int semihost_read_all(int fd, void *buf, size_t n)
+{
+    return semihost_read(fd, buf, n) == (int)n;
+}
+
+int semihost_slurp(const char *path, void *buf, size_t cap)
+{
+    int got, fd = semihost_open(path, 1);
+    if (fd < 0) {
+        return -1;
+    }
+    got = semihost_read(fd, buf, cap);
+    semihost_close(fd);
+    return got;
+}

@@ -10,4 +10,6 @@ int semihost_write(int fd, const void *buf, size_t n); /* returns 0 on success *
 void semihost_close(int fd);
 void semihost_puts(const char *s);
 void semihost_exit(int code);
+int semihost_read_all(int fd, void *buf, size_t n); /* 1 if exactly n bytes were read */
+int semihost_slurp(const char *path, void *buf, size_t cap); /* a whole file (<= cap bytes): its size, or -1 */
 #endif

@@ -26,41 +26,30 @@ typedef struct rec {
 static uint32_t scene_buf[SCENE_MAX / 4u];
 static polycc_shield_job_t job;
 
-static int read_all(int fd, void *buf, size_t n)
-{
-    return semihost_read(fd, buf, n) == (int)n;
-}
-
 int main(void)
 {
     polycc_scene_t scene;
     polycc_shield_params_t params;
     polycc_index_t index;
     uint32_t n, done = 0;
-    int fs, fi, fo, got;
+    int fi, fo, got;
 
-    fs = semihost_open("scene.bin", 1);
-    if (fs < 0) {
-        semihost_puts("cannot read scene.bin\n");
-        return 2;
-    }
-    got = semihost_read(fs, scene_buf, sizeof scene_buf);
-    semihost_close(fs);
-    if (polycc_scene_from_image(&scene, &index, scene_buf, (size_t)got) != 0) {
+    got = semihost_slurp("scene.bin", scene_buf, sizeof scene_buf);
+    if (got < 0 || polycc_scene_from_image(&scene, &index, scene_buf, (size_t)got) != 0) {
         semihost_puts("cannot read scene.bin\n");
         return 2;
     }
 
     fi = semihost_open("shield.bin", 1);
     fo = semihost_open("out.bin", 5);
-    if (fi < 0 || fo < 0 || !read_all(fi, &params, sizeof params) || !read_all(fi, &n, sizeof n)) {
+    if (fi < 0 || fo < 0 || !semihost_read_all(fi, &params, sizeof params) || !semihost_read_all(fi, &n, sizeof n)) {
         semihost_puts("cannot open shield.bin/out.bin\n");
         return 3;
     }
     while (done < n) {
         float r[15];
         rec_t o;
-        if (!read_all(fi, r, sizeof r)) {
+        if (!semihost_read_all(fi, r, sizeof r)) {
             semihost_puts("short shield.bin\n");
             return 4;
         }
