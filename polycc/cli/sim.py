@@ -160,6 +160,7 @@ def _fly_firmware(args, header: Path, sim, scene, cfg, pairs, plans, flown, out:
         e = t.extra or {}
         say(f"{'ok' if t.success else t.outcome}, {t.time_s:.1f} s simulated, RTF {e.get('rtf') or 0:.2f}, "
             f"{'landed' if e.get('landed') else 'NOT landed'} (touchdown {e.get('touchdown_ms', 0):.2f} m/s)"
+            + (", flown again after a SITL hang" if e.get("sitl_reruns") else "")
             + (f", logs {e['run_dir']}" if e.get("run_dir") else ""))
         trials.append(t)
     return trials

@@ -261,6 +261,27 @@ def test_polycc_sim_firmware_trials(arena, tmp_path, capsys):
     assert (out / "trajectories.png").is_file() and (out / "trajectories.npz").is_file()
 
 
+@pytest.mark.slow
+def test_a_hung_firmware_is_reported_as_a_stall_with_its_threads(arena, tmp_path, monkeypatch):
+    """A cf2 that stops taking ticks (here frozen with SIGSTOP, as the one CI hang looked from outside)
+    raises SitlStall within STALL_S wall seconds, naming cf2's thread states, and leaves stall.txt."""
+    import signal
+
+    from polycc.sim.firmware import sitl as sitl_mod
+
+    monkeypatch.setattr(sitl_mod, "STALL_S", 2.0)
+    with sitl_mod.FirmwareSitl(arena["build"], start=arena["start"], run_dir=tmp_path / "run") as s:
+        s.sleep(0.2)  # advancing: no stall
+        os.kill(s.fw.pid, signal.SIGSTOP)
+        try:
+            with pytest.raises(sitl_mod.SitlStall, match=r"stopped advancing .*cf2 threads: \d+ x T"):
+                s.wait_until(lambda: False, 60.0)
+        finally:
+            os.kill(s.fw.pid, signal.SIGCONT)
+    text = (tmp_path / "run" / "stall.txt").read_text()
+    assert "bridge stats:" in text and "thread " in text
+
+
 # --------------------------------------------------------------------------- fast vs real
 @pytest.mark.slow
 def test_fast_shims_agree_with_the_real_firmware(arena):

@@ -34,7 +34,7 @@ from polycc.errors import PolyccError
 from polycc.link.cflib_tools import close_without_stop, connect, set_param
 from polycc.sim.clearance import Clearance, densify
 from polycc.sim.firmware.build import Cf2Build, build_cf2
-from polycc.sim.firmware.sitl import FirmwareSitl
+from polycc.sim.firmware.sitl import FirmwareSitl, SitlStall
 from polycc.sim.sitl import FlightConfig, Trial
 
 TAKEOFF_SPEED = 0.5  # m/s
@@ -66,6 +66,19 @@ class FirmwareSimulator:
         self.toc_cache = None
 
     def fly(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
+        """One trial on a fresh SITL instance. A SITL that hangs (:class:`SitlStall`: cf2 stops taking ticks
+        with both processes alive; seen once in ~30 CI trials, root cause open, its diagnostics are in the
+        message) is reported and the trial is flown once more from scratch; ``extra["sitl_reruns"]`` counts it."""
+        try:
+            trial = self._fly_once(start, goal, cfg, waypoints)
+            trial.extra["sitl_reruns"] = 0
+        except SitlStall as exc:
+            self.say(f"{exc}; the simulator hung, not the flight: flying this trial again on a fresh instance")
+            trial = self._fly_once(start, goal, cfg, waypoints)
+            trial.extra["sitl_reruns"] = 1
+        return trial
+
+    def _fly_once(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
         cfg = cfg or FlightConfig()
         self.n += 1
         start = np.asarray(start, np.float64)
@@ -150,7 +163,6 @@ class FirmwareSimulator:
         t_max = cfg.t_max_s if cfg.t_max_s is not None else 2.0 * planned / cfg.vmax + 10.0 + 4.0 * (len(targets) - 1)
         outcome, current = "timeout", 0
         hist: list[tuple[float, np.ndarray]] = []
-        last_wall, last_t = time.monotonic(), t0
         while True:
             s = sitl.state()
             t, p = float(s["t"]) - t0, np.asarray(s["pos"])
@@ -168,11 +180,7 @@ class FirmwareSimulator:
                 if old is not None and np.linalg.norm(p - old) < cfg.stuck_dist_m:
                     outcome = "stuck"
                     break
-            if t > last_t:
-                last_wall, last_t = time.monotonic(), t
-            elif time.monotonic() - last_wall > 20.0:
-                sitl.check_alive()
-                raise PolyccError(f"the SITL simulation stopped advancing at t = {t:.2f} s")
+            sitl.note_time(t + t0)
             time.sleep(SAMPLE_S)
         t_end = sitl.time()
         with lock:

@@ -61,6 +61,12 @@ class SitlError(PolyccError):
     """A one-line failure of the real-firmware SITL (start, run or stop)."""
 
 
+class SitlStall(SitlError):
+    """The simulation stopped advancing: cf2 took no tick for :data:`STALL_S` wall seconds while both
+    processes were alive. The simulator hung, not the flight: the message names the threads' states and
+    ``stall.txt`` in the run folder holds the bridge's counters and cf2's backtraces (gdb, when installed)."""
+
+
 def _die_with_parent():
     """preexec_fn: SIGKILL when the parent dies (Linux)."""
     try:
@@ -163,6 +169,7 @@ class FirmwareSitl:
         self._failed = False
         self.t_handshake = self.t_ready = None
         self._lock = threading.Lock()
+        self._adv_t, self._adv_wall = -1.0, time.monotonic()  # the stall watchdog (note_time)
 
     # ------------------------------------------------------------------ paths
     @property
@@ -355,23 +362,70 @@ class FirmwareSitl:
         if "error" in r:
             raise SitlError(f"cut_link: {r['error']}")
 
+    def note_time(self, t: float) -> None:
+        """Stall watchdog for loops that poll the simulation: call with each simulated time read; raises
+        :class:`SitlStall` (with diagnostics) when it has not advanced for :data:`STALL_S` wall seconds."""
+        now = time.monotonic()
+        if t > self._adv_t:
+            self._adv_t, self._adv_wall = t, now
+        elif now - self._adv_wall > STALL_S:
+            self.check_alive()
+            raise SitlStall(f"the SITL simulation stopped advancing at t = {t:.3f} s for {STALL_S:.0f} wall "
+                            f"seconds with cf2 and the bridge alive ({self.stall_report()}; {self._last_lines()})")
+
+    def stall_report(self) -> str:
+        """One line on why the simulation may be stuck; the details (bridge counters, cf2's per-thread
+        kernel state and, with gdb on PATH, every thread's backtrace) go to ``run_dir/stall.txt``."""
+        lines, short = [], []
+        try:
+            st = self.stats(timeout=1.0)
+            lines.append("bridge stats: " + json.dumps(st))
+            short.append(f"bridge: {st.get('ticks', '?')} ticks written, {st.get('tick_waits', '?')} waits for cf2")
+        except SitlError as exc:
+            lines.append(f"bridge stats: {exc}")
+        pid = self.fw.pid if self.fw is not None else None
+        states: dict[str, int] = {}
+        if pid is not None:
+            for task in sorted(Path(f"/proc/{pid}/task").glob("*")):
+                try:
+                    comm = (task / "comm").read_text().strip()
+                    state = (task / "stat").read_text().rsplit(")", 1)[1].split()[0]
+                    wchan = (task / "wchan").read_text().strip() or "-"
+                    sig = dict(ln.split(":\t", 1) for ln in (task / "status").read_text().splitlines()
+                               if ln.startswith(("SigBlk", "SigPnd", "ShdPnd")))
+                except OSError:
+                    continue
+                lines.append(f"thread {task.name} {comm!r}: {state} {wchan} {sig}")
+                key = f"{state} {wchan}"
+                states[key] = states.get(key, 0) + 1
+            short.append("cf2 threads: " + ", ".join(f"{v} x {k}" for k, v in sorted(states.items())))
+            gdb = shutil.which("gdb")
+            if gdb:
+                try:
+                    bt = subprocess.run([gdb, "-p", str(pid), "-batch", "-nx", "-ex", "thread apply all bt"],
+                                        capture_output=True, text=True, timeout=60)
+                    lines.append(bt.stdout[-200_000:])
+                except (OSError, subprocess.TimeoutExpired) as exc:
+                    lines.append(f"gdb: {exc}")
+        if self.run_dir is not None:
+            try:
+                (self.run_dir / "stall.txt").write_text("\n".join(lines) + "\n")
+                short.append(f"details in {self.run_dir / 'stall.txt'}")
+            except OSError:
+                pass
+        return "; ".join(short)
+
     def wait_until(self, pred, timeout_s: float, poll_s: float = 0.02) -> bool:
         """Poll ``pred()`` until it is true (True) or ``timeout_s`` of simulated time passed (False); a
-        simulation that stops advancing for :data:`STALL_S` wall seconds raises :class:`SitlError`."""
+        simulation that stops advancing for :data:`STALL_S` wall seconds raises :class:`SitlStall`."""
         t_end = self.time() + timeout_s
-        last_t, last_wall = -1.0, time.monotonic()
         while True:
             if pred():
                 return True
             t = self.time()
             if t >= t_end:
                 return False
-            now = time.monotonic()
-            if t > last_t:
-                last_t, last_wall = t, now
-            elif now - last_wall > STALL_S:
-                self.check_alive()
-                raise SitlError(f"the SITL simulation stopped advancing at t = {t:.3f} s ({self._last_lines()})")
+            self.note_time(t)
             time.sleep(poll_s)
 
     def sleep(self, seconds: float) -> None:
