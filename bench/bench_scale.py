@@ -110,7 +110,7 @@ def build(which: str, ply: Path, g: float, out: Path, extra: list[str]) -> dict:
         env["PYTHONPATH"] = str(baseline_checkout())
     cmd = [sys.executable, "-m", "polycc", "build", str(ply), "--voxel", str(g), "--flash-kb", "64", "-o", str(out),
            *extra]
-    r = run_tree(cmd, env, out.with_suffix(".log"))
+    r = run_tree(cmd, env, out.parent / f"{out.name}.log")  # (with_suffix would cut "room1.5M_5" at its dot)
     r.update(parse_summary(r["out"]))
     if r["rc"] == 0:
         st = json.loads((out / "manifest.json").read_text())["stats"]
