@@ -56,7 +56,7 @@ from polycc.onboard.layout import PackedScene, pack_scene  # noqa: E402
 from polycc.sim import kernel_arm  # noqa: E402
 from polycc.sim.cortex_m4_model import MHZ, CortexM4Model, Cost, Emulator  # noqa: E402,F401
 from polycc.sim.kernel_ffi import HostScene, step_batch  # noqa: E402
-from polycc.testing.synthetic import pad_to_planes, random_hull_polytopes  # noqa: E402
+from polycc.testing.synthetic import pad_to_planes, random_hull_polytopes, shell_scene  # noqa: E402
 
 BENCH_ELF = "kernel_bench"
 
@@ -121,30 +121,6 @@ def flight_path(sc: PackedScene, params: B.Params, n_samples: int, seed: int) ->
             break
     path = np.array(path)
     return path[np.linspace(0, len(path) - 1, n_samples).astype(int)]
-
-
-def shell_scene(sc: PackedScene, dist: float = 0.5) -> PackedScene:
-    """The same polytopes translated onto a shell around the origin so that max_l g_kl(0) = dist
-    for every k: all lie within the culling distance of the origin."""
-    k = sc.n_polys
-    i = np.arange(k) + 0.5
-    phi, th = np.arccos(1 - 2 * i / k), np.pi * (1 + 5 ** 0.5) * i
-    dirs = np.c_[np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)]
-    out = []
-    for h, u, P in zip(sc.polytopes(), dirs, sc.polys):
-        h = h.astype(np.float64)
-        c = np.array([P["cx"], P["cy"], P["cz"]], np.float64)
-
-        def phi0(s):  # max_l g_l(0) after moving the centre to s * u
-            return np.max(-(h[:, 3] + h[:, :3] @ (s * u - c)))
-
-        lo, hi = 0.0, 50.0
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if phi0(mid) < dist else (lo, mid)
-        t = hi * u - c
-        out.append(np.c_[h[:, :3], h[:, 3] + h[:, :3] @ t])
-    return pack_scene(out, merge_duplicates=False)
 
 
 def us(cycles: float) -> float:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from polycc.errors import PolyccError
-from polycc.geometry.halfplanes import hull_halfplanes
+from polycc.geometry.halfplanes import axis_box, hull_halfplanes
+from polycc.onboard.layout import PackedScene, pack_scene
 
 
 def random_hull_polytopes(rng: np.random.Generator, n: int, *, extent=(10.0, 10.0, 3.0), size=(0.1, 0.6),
@@ -37,3 +38,37 @@ def pad_to_planes(polytopes: list[np.ndarray], total: int) -> list[np.ndarray]:
         have += 1
         k += 1
     return out
+
+
+def small_scene(seed: int, n: int, boxes: bool) -> PackedScene:
+    """n random axis boxes (0.05-1.5 m sides) or convex hulls (5-25 points) in [0, 4 m]^3, packed."""
+    rng = np.random.default_rng(seed)
+    if boxes:
+        polys = []
+        for _ in range(n):
+            lo = rng.uniform(0, 4, 3)
+            polys.append(axis_box(lo, lo + rng.uniform(0.05, 1.5, 3)))
+    else:
+        polys = random_hull_polytopes(rng, n, extent=(4.0, 4.0, 4.0), size=(0.05, 1.0), points=(5, 25))
+    return pack_scene(polys)
+
+
+def shell_scene(sc: PackedScene, dist: float = 0.5) -> PackedScene:
+    """The same polytopes translated onto a shell around the origin so that max_l g_kl(0) = dist (m)
+    for every k: all lie within the culling distance of the origin (the kernel's worst case)."""
+    k = sc.n_polys
+    i = np.arange(k) + 0.5
+    phi, th = np.arccos(1 - 2 * i / k), np.pi * (1 + 5 ** 0.5) * i
+    dirs = np.c_[np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)]
+    out = []
+    for h, u, P in zip(sc.polytopes(), dirs, sc.polys):
+        h = h.astype(np.float64)
+        c = np.array([P["cx"], P["cy"], P["cz"]], np.float64)
+        lo, hi = 0.0, 50.0
+        for _ in range(60):  # bisect the shift s along u with max_l g_l(0) = dist
+            mid = 0.5 * (lo + hi)
+            val = np.max(-(h[:, 3] + h[:, :3] @ (mid * u - c)))
+            lo, hi = (mid, hi) if val < dist else (lo, mid)
+        t = hi * u - c
+        out.append(np.c_[h[:, :3], h[:, 3] + h[:, :3] @ t])
+    return pack_scene(out, merge_duplicates=False)

@@ -12,7 +12,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from polycc.budget import cycle_model as CM
-from polycc.geometry.halfplanes import axis_box
 from polycc.onboard import barrier as B
 from polycc.onboard.index import build_index, grid_box, index_slack
 from polycc.onboard.layout import pack_scene, scene_from_bytes
@@ -26,7 +25,7 @@ from polycc.testing.bitexact import (
     indexed_scene,
     states,
 )
-from polycc.testing.synthetic import random_hull_polytopes
+from polycc.testing.synthetic import shell_scene, small_scene
 
 kffi = pytest.importorskip("polycc.sim.kernel_ffi")
 
@@ -108,15 +107,7 @@ def test_grid_box_is_certified(seed, n, boxes, cap, cell, pseed):
 
 @lru_cache(maxsize=64)
 def _small(seed: int, n: int, boxes: bool):
-    rng = np.random.default_rng(seed)
-    if boxes:
-        polys = []
-        for _ in range(n):
-            lo = rng.uniform(0, 4, 3)
-            polys.append(axis_box(lo, lo + rng.uniform(0.05, 1.5, 3)))
-    else:
-        polys = random_hull_polytopes(rng, n, extent=(4.0, 4.0, 4.0), size=(0.05, 1.0), points=(5, 25))
-    return pack_scene(polys)
+    return small_scene(seed, n, boxes)
 
 
 @lru_cache(maxsize=64)
@@ -220,7 +211,7 @@ def test_arm_cycles_at_the_worst_leaf_within_certified():
     # every polytope of a 40-hull room on a shell of radius 0.3 m around the origin: none is culled there
     from polycc.testing.synthetic import random_hull_polytopes as rh
 
-    shell = _shell(pack_scene(rh(np.random.default_rng(3), 40, points=(8, 14))), 0.3)
+    shell = shell_scene(pack_scene(rh(np.random.default_rng(3), 40, points=(8, 14))), 0.3)
     scenes.append(shell.with_index(build_index(shell, 0.6, 1.0, target=None)))
     for sc in scenes:
         emu.load_scene(sc, PARAMS[0])
@@ -237,26 +228,6 @@ def test_arm_cycles_at_the_worst_leaf_within_certified():
             ref = B.step(sc, PARAMS[0], x[None], np.zeros((1, 3)))
             assert out["psi"][0].view(np.uint32) == ref["psi"][0].view(np.uint32)
             assert cost.high <= certified, f"{cost.high} cycles > certified {certified:.0f} at {x}"
-
-
-def _shell(sc, dist):
-    """Polytopes translated so that max_l g_kl(0) = dist for every k (bench/bench_kernel.py's shell)."""
-    k = sc.n_polys
-    i = np.arange(k) + 0.5
-    phi, th = np.arccos(1 - 2 * i / k), np.pi * (1 + 5 ** 0.5) * i
-    dirs = np.c_[np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)]
-    out = []
-    for h, u, P in zip(sc.polytopes(), dirs, sc.polys):
-        h = h.astype(np.float64)
-        c = np.array([P["cx"], P["cy"], P["cz"]], np.float64)
-        lo, hi = 0.0, 50.0
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            val = np.max(-(h[:, 3] + h[:, :3] @ (mid * u - c)))
-            lo, hi = (mid, hi) if val < dist else (lo, mid)
-        t = hi * u - c
-        out.append(np.c_[h[:, :3], h[:, 3] + h[:, :3] @ t])
-    return pack_scene(out, merge_duplicates=False)
 
 
 def test_scenes_list_is_complete():

@@ -13,25 +13,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from polycc.geometry.halfplanes import axis_box
 from polycc.onboard import barrier as B
-from polycc.onboard.layout import pack_scene
-from polycc.testing.synthetic import random_hull_polytopes
+from polycc.testing import synthetic
 
 kffi = pytest.importorskip("polycc.sim.kernel_ffi")
 
 
 @lru_cache(maxsize=64)
 def small_scene(seed: int, n: int, boxes: bool):
-    rng = np.random.default_rng(seed)
-    if boxes:
-        polys = []
-        for _ in range(n):
-            lo = rng.uniform(0, 4, 3)
-            polys.append(axis_box(lo, lo + rng.uniform(0.05, 1.5, 3)))
-    else:
-        polys = random_hull_polytopes(rng, n, extent=(4.0, 4.0, 4.0), size=(0.05, 1.0), points=(5, 25))
-    sc = pack_scene(polys)
+    sc = synthetic.small_scene(seed, n, boxes)
     return sc, kffi.HostScene(sc)
 
 
