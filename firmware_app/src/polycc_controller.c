@@ -46,6 +46,7 @@ static float pPsiCap = POLYCC_SHIELD_DEFAULT_PSI_CAP;
 /* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
 typedef struct mailbox {
     float pos[3], vel[3], acc[3], ud[3];
+    float gap2; /* squared horizontal distance, m^2, from a position setpoint to the estimate (0: none) */
     uint32_t tick;
     bool manual, valid;
 } mailbox_t;
@@ -238,12 +239,15 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
 {
     float ud[3] = {0.0f, 0.0f, 0.0f}, ub[3];
     bool manual = !desiredVelocity(sp, pos, yaw_deg, ud), isOn;
+    const float gx = sp->mode.x == modeAbs ? sp->position.x - pos[0] : 0.0f;
+    const float gy = sp->mode.y == modeAbs ? sp->position.y - pos[1] : 0.0f;
     decision_t d;
     taskENTER_CRITICAL();
     memcpy(mbox.pos, pos, sizeof mbox.pos);
     memcpy(mbox.vel, vel, sizeof mbox.vel);
     memcpy(mbox.acc, acc, sizeof mbox.acc);
     memcpy(mbox.ud, ud, sizeof mbox.ud);
+    mbox.gap2 = gx * gx + gy * gy;
     mbox.tick = tick;
     mbox.manual = manual;
     mbox.valid = true;
@@ -309,9 +313,9 @@ void polycc_controller_plan(uint32_t now)
     mailbox_t m;
     decision_t d;
     const float *uApp;
+    float speed2, udxy2;
     float uB[3];
     uint32_t f;
-    float speed2;
     if (!pOn && !on) {
         trace.status = POLYCC_SHIELD_STATUS_OFF;
         return;
@@ -337,8 +341,20 @@ void polycc_controller_plan(uint32_t now)
         return;
     }
     speed2 = (m.vel[0] * m.vel[0] + m.vel[1] * m.vel[1]) + m.vel[2] * m.vel[2];
-    if (!pOn) { /* safe hand-over: only while the shield leaves the setpoint alone, or at rest */
-        if (!d.valid || d.pass || m.manual || speed2 <= 0.05f * 0.05f) {
+    udxy2 = m.ud[0] * m.ud[0] + m.ud[1] * m.ud[1];
+    if (!pOn) {
+        /* Safe hand-over: when the source's setpoint is manual, or lies (horizontally) where the vehicle
+         * is and either the shield passes it unchanged or the vehicle is at rest and the source asks it
+         * to stay or to go straight down (a hover at the brake edge is never certified; landing ends
+         * every flight).  Not merely "at rest" or "passed": a vehicle held in front of a box by a
+         * high-level go_to whose setpoint lies behind it is at rest, and its setpoint's velocity can
+         * point away from the box for a moment; releasing it then flew it into the box on the real
+         * firmware (the PID chases the setpoint's position). */
+        const bool here = m.gap2 <= POLYCC_SHIELD_HANDBACK_GAP * POLYCC_SHIELD_HANDBACK_GAP;
+        const bool rest = speed2 <= POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED &&
+                          udxy2 <= POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED &&
+                          m.ud[2] <= POLYCC_SHIELD_HOLD_SPEED;
+        if (!d.valid || m.manual || (here && (d.pass || rest))) {
             switchOff(POLYCC_SHIELD_STATUS_OFF);
             return;
         }
@@ -421,7 +437,11 @@ void controllerOutOfTree(control_t *control, const setpoint_t *setpoint, const s
     const float pos[3] = {state->position.x, state->position.y, state->position.z};
     const float vel[3] = {state->velocity.x, state->velocity.y, state->velocity.z};
     const float acc[3] = {state->acc.x * G_MS2, state->acc.y * G_MS2, state->acc.z * G_MS2};
-    polycc_controller_filter(&sp, pos, vel, acc, state->attitude.yaw, (uint32_t)stabilizerStep);
+    /* The FreeRTOS tick, not stabilizerStep: the app side stamps its decisions with xTaskGetTickCount(),
+     * and stabilizerStep starts at 1 only after calibration, seconds behind it (on the real firmware a
+     * stabilizerStep stamp made every mailbox look stale: status 8, the shield off while enabled). */
+    (void)stabilizerStep;
+    polycc_controller_filter(&sp, pos, vel, acc, state->attitude.yaw, (uint32_t)xTaskGetTickCount());
     controllerPid(control, &sp, sensors, state, stabilizerStep);
 }
 #endif

@@ -25,7 +25,10 @@
  *
  * Param polyccShield.enable switches the shield; on: the first decision is flown one to two
  * periods later (status starting: setpoints pass meanwhile); off: deferred (status off-pending)
- * while the shield changes the setpoint, until it passes one unchanged or the vehicle is at rest.
+ * while the shield changes the setpoint: until the source's setpoint lies where the vehicle is (within
+ * POLYCC_SHIELD_HANDBACK_GAP horizontally, position modes) and the shield passes it unchanged or the
+ * vehicle is at rest and the source asks it to stay or to descend straight down (slower than
+ * POLYCC_SHIELD_HOLD_SPEED).
  */
 #ifndef POLYCC_CONTROLLER_H
 #define POLYCC_CONTROLLER_H
@@ -71,6 +74,8 @@
 /* Under the backup, below this speed (m/s) the brake becomes a position hold where it got that slow:
  * a velocity setpoint of 0 leaves the velocity loop's integrator to creep the vehicle on. */
 #define POLYCC_SHIELD_HOLD_SPEED 0.1f
+/* Switching off hands back only a position setpoint this close to the estimate (horizontal, m). */
+#define POLYCC_SHIELD_HANDBACK_GAP 0.1f
 /* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
 #define POLYCC_SHIELD_POS_KP 2.0f
 #define POLYCC_SHIELD_POS_VMAX 1.0f
@@ -81,7 +86,8 @@
 /* Resets the shield (off) and its parameters to the defaults. */
 void polycc_controller_init(void);
 /* Stabilizer side: replaces *sp by what the PID gets this tick.  pos/vel/acc: the estimate (m,
- * m/s, m/s^2), yaw_deg its heading; tick: the stabilizer step (1 kHz, = FreeRTOS ticks). */
+ * m/s, m/s^2), yaw_deg its heading; tick: the FreeRTOS tick count (1 kHz; not stabilizerStep, which
+ * starts at 1 after calibration), the clock of polycc_controller_plan()'s now. */
 struct setpoint_s;
 void polycc_controller_filter(struct setpoint_s *sp, const float pos[3], const float vel[3], const float acc[3],
                               float yaw_deg, uint32_t tick);

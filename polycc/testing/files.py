@@ -58,3 +58,14 @@ def sitl_tarball() -> Path:
 
 def upstream_tarball() -> Path:
     return firmware_tarball("upstream")
+
+
+def readme_block(marker: str) -> str:
+    """The python code block after ``<!-- MARKER -->`` in the checkout's README.md (the examples the tests
+    run as written)."""
+    import re
+
+    m = re.search(rf"<!-- {re.escape(marker)} -->\n```python\n(.*?)```", (CHECKOUT / "README.md").read_text(), re.S)
+    if m is None:
+        raise AssertionError(f"README.md lost its example marked <!-- {marker} -->")
+    return m.group(1)

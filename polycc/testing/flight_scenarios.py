@@ -401,3 +401,16 @@ def diff_rms(fast: dict, real: dict, seconds: float = 12.0) -> float:
 
 SCENARIOS = {f.__name__: f for f in (full_flight, polycc_fly_from_floor, enabled_on_floor, disable_at_speed,
                                      link_loss, unsupported_controller, ground_setpoints_while_enabled)}
+
+
+def demo_box_distance(P: np.ndarray, name: str = "box_2") -> np.ndarray:
+    """Exact distance (m) from points (world frame) to a box of the demo arena (its splats lie on its
+    faces; negative inside)."""
+    from polycc.demo.arena import demo_arena_description
+
+    box = next(b for b in demo_arena_description()["boxes"] if b["name"] == name)
+    c, half, yaw = np.array(box["center"]), np.array(box["size"]) / 2, math.radians(box["yaw_deg"])
+    d = np.asarray(P, np.float64) - c
+    rot = np.array([[math.cos(yaw), math.sin(yaw), 0], [-math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+    q = np.abs(d @ rot.T) - half
+    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)

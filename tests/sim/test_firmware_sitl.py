@@ -153,10 +153,9 @@ def _sim_time_import(w):
 
 @pytest.mark.slow
 def test_readme_cflib_example_on_the_real_firmware(arena):
-    from polycc.testing.files import CHECKOUT
+    from polycc.testing.files import readme_block
 
-    text = (CHECKOUT / "README.md").read_text()
-    code = re.search(r"<!-- readme-cflib-example -->\n```python\n(.*?)```", text, re.S).group(1)
+    code = readme_block("readme-cflib-example")
     goal = np.array([float(v) for v in re.search(r'\("goalX", ([-\d.]+)\), \("goalY", ([-\d.]+)\), '
                                                  r'\("goalZ", ([-\d.]+)\)', code).groups()])
     with world(arena) as w:
@@ -246,6 +245,92 @@ def test_position_hl_commander(arena, monkeypatch):
     assert math.dist(p_goto, (x0 + 0.4, y0, 0.7)) < 0.1
     # PositionHlCommander.land waits the landing's duration and then stops: measured 0.11 m up (PID lag)
     assert p_end[2] < 0.2 and touchdown < 2.5
+
+
+# --------------------------------------------------------------------------- the shield on the real firmware
+SHIELD_START = (-0.2, -0.6, 0.0)  # in front of the demo arena's box_2 (tests/sim/test_readme_shield.py)
+OOT_CONTROLLER_FORK = 5  # ControllerTypeOot in the CrazySim fork's enum (no Lee controller); 6 upstream
+
+
+def _box_clearance(xyz, r: float = 0.1):
+    """Closest approach of the vehicle (radius r = the shield's default, m) to box_2, minus r (m)."""
+    return float(fs.demo_box_distance(xyz, "box_2").min() - r)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("shield", [1, 0])
+def test_readme_shield_example_on_the_real_firmware(arena, monkeypatch, shield):
+    """The README's MotionCommander script (a user's own, 1 m/s straight at box_2) on the real firmware with
+    the app's out-of-tree controller: with the shield on it stops with clearance >= r; left off, the same
+    script flies into the box (so the test can fail). Changed from the README: the URI, the controller's
+    number (5 in this fork) and, off, the enable value; time runs on the SITL's clock."""
+    from cflib.positioning import motion_commander
+
+    from polycc.testing.files import readme_block
+    from polycc.testing.worlds import FirmwareWorld
+
+    oot = f'"stabilizer.controller", {OOT_CONTROLLER_FORK}'
+    code = readme_block("readme-shield-example").replace('"stabilizer.controller", 6', oot)
+    assert oot in code
+    if not shield:
+        code = code.replace('"polyccShield.enable", 1', '"polyccShield.enable", 0')
+    with FirmwareWorld(arena["dir"] / "polytopes.h", SHIELD_START, cf2=arena["build"]) as w:
+        monkeypatch.setattr(motion_commander, "time", _sim_time(w))
+        with fs.Recorder(w, {}) as rec:
+            g = {"__builtins__": dict(vars(builtins), __import__=_sim_time_import(w))}
+            exec(compile(code.replace("udp://127.0.0.1:19850", w.uri), "README.md", "exec"), g)
+        xyz = rec.array()[:, 1:4]
+    assert xyz[:, 2].max() > 0.4  # it took off
+    c = _box_clearance(xyz)
+    print(f"shield {'on' if shield else 'off'}: closest approach to box_2 minus r = {c:+.3f} m")
+    if shield:
+        assert c >= 0.0, f"shield on, real firmware: {-c:.3f} m into the box (r = 0.1 m)"
+    else:
+        assert c < -0.05, "shield off: the same script must fly into the box (the test can fail)"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("shield", [1, 0])
+def test_high_level_go_to_through_a_box_on_the_real_firmware(arena, shield):
+    """A high-level go_to straight through box_2 (2.8 m at about 1 m/s) with the app's out-of-tree
+    controller: with the shield on it is stopped in front of the box and never enters it, and switching the
+    shield off there is deferred (the go_to's setpoint still lies behind the box) until a go_to back to the
+    start; off, it flies in.  Regression: an "at rest" hand-over let go of the held vehicle, and the PID
+    flew it on into the box."""
+    from polycc.link.cflib_tools import close_without_stop, set_param
+    from polycc.testing.worlds import FirmwareWorld
+
+    x0, y0 = SHIELD_START[0], SHIELD_START[1]
+    with FirmwareWorld(arena["dir"] / "polytopes.h", SHIELD_START, cf2=arena["build"]) as w:
+        scf = _connect(w)
+        try:
+            cf = scf.cf
+            set_param(cf, "stabilizer.controller", OOT_CONTROLLER_FORK)
+            with fs.Recorder(w, {}) as rec:
+                cf.high_level_commander.takeoff(0.5, 2.0)
+                w.sleep(3.0)
+                set_param(cf, "polyccShield.enable", shield)
+                cf.high_level_commander.go_to(x0, y0 - 2.8, 0.5, 0.0, 2.8)
+                w.sleep(4.0)
+                p_end = w.truth()[0].copy()
+                set_param(cf, "polyccShield.enable", 0)  # still aimed behind the box
+                w.sleep(2.0)
+                cf.high_level_commander.go_to(x0, y0, 0.5, 0.0, 3.0)
+                w.sleep(4.0)
+                cf.high_level_commander.land(0.0, 3.0)
+                w.wait_until(lambda: not w.truth()[2], 8.0)
+            xyz = rec.array()[:, 1:4]
+        finally:
+            close_without_stop(scf)
+    c = _box_clearance(xyz)
+    print(f"go_to, shield {'on' if shield else 'off'}: closest approach to box_2 minus r = {c:+.3f} m, "
+          f"held at {np.round(p_end, 2)}")
+    assert xyz[:, 2].max() > 0.4
+    if shield:
+        assert c >= 0.0, f"shield on, real firmware: the go_to took it {-c:.3f} m into the box"
+        assert np.linalg.norm(xyz[-1, :2] - [x0, y0]) < 0.2  # flew back and landed at the start
+    else:
+        assert c < -0.05, "shield off: the go_to must fly into the box (the test can fail)"
 
 
 # --------------------------------------------------------------------------- polycc sim --firmware

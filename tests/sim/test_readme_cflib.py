@@ -10,7 +10,7 @@ import re
 import numpy as np
 import pytest
 
-from polycc.testing.files import CHECKOUT
+from polycc.testing.files import readme_block
 from polycc.testing.flight_scenarios import Recorder
 from polycc.testing.worlds import FastWorld
 
@@ -18,10 +18,7 @@ pytest.importorskip("cflib")
 
 
 def readme_example() -> str:
-    text = (CHECKOUT / "README.md").read_text()
-    m = re.search(r"<!-- readme-cflib-example -->\n```python\n(.*?)```", text, re.S)
-    assert m, "README.md lost its cflib example (marked <!-- readme-cflib-example -->)"
-    return m.group(1)
+    return readme_block("readme-cflib-example")
 
 
 def test_the_example_is_plain_cflib():

@@ -4,14 +4,11 @@ with clearance >= r = 0.1 m; the same script with the shield left off flies into
 
 from __future__ import annotations
 
-import math
-import re
-
 import numpy as np
 import pytest
 
-from polycc.testing.files import CHECKOUT
-from polycc.testing.flight_scenarios import Recorder
+from polycc.testing.files import readme_block
+from polycc.testing.flight_scenarios import Recorder, demo_box_distance
 from polycc.testing.worlds import FastWorld
 
 pytest.importorskip("cflib")
@@ -20,22 +17,11 @@ START = (-0.2, -0.6, 0.0)
 
 
 def readme_example() -> str:
-    text = (CHECKOUT / "README.md").read_text()
-    m = re.search(r"<!-- readme-shield-example -->\n```python\n(.*?)```", text, re.S)
-    assert m, "README.md lost its shield example (marked <!-- readme-shield-example -->)"
-    return m.group(1)
+    return readme_block("readme-shield-example")
 
 
 def box_distance(P: np.ndarray) -> np.ndarray:
-    """Exact distance from points to the demo arena's box_2 (its splats lie on its faces)."""
-    from polycc.demo.arena import demo_arena_description
-
-    box = next(b for b in demo_arena_description()["boxes"] if b["name"] == "box_2")
-    c, half, yaw = np.array(box["center"]), np.array(box["size"]) / 2, math.radians(box["yaw_deg"])
-    d = P - c
-    rot = np.array([[math.cos(yaw), math.sin(yaw), 0], [-math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
-    q = np.abs(d @ rot.T) - half
-    return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+    return demo_box_distance(P, "box_2")
 
 
 def test_the_example_is_plain_cflib_and_uses_the_shield():

@@ -33,6 +33,11 @@
 #define WDT_STABILIZE_TICKS 500u
 #define WDT_SHUTDOWN_TICKS 2000u
 #define FLYING_HYSTERESIS_TICKS 2000u
+/* The firmware's stabilizerStep is not the tick count: stabilizerTask sets it to 1 once the sensors are
+ * calibrated (src/modules/src/stabilizer.c) and counts loops from there, so it lags xTaskGetTickCount() by
+ * the boot and calibration time (~1-3 s). The shim models a 1.5 s lag, so app code that mixes the two
+ * clocks fails here as it does on the real firmware (the shield did, and reported status 8). */
+#define STABILIZER_START_TICK 1500u
 
 static shim_commander_record_t rec;
 static setpoint_t current;      /* the commander's setpoint queue */
@@ -477,7 +482,7 @@ void shim_stabilizer_step(const float pos[3], const float vel[3], float yaw_deg,
     }
     motorsOn = !isNull(&sp);
     if (controllerType == ControllerTypeOot) { /* the stabilizer's controller() call: shield, then PID */
-        controllerOutOfTree(0, &sp, 0, &state, (stabilizerStep_t)tick);
+        controllerOutOfTree(0, &sp, 0, &state, (stabilizerStep_t)(tick + 1u - STABILIZER_START_TICK));
         sp = pidSetpoint;
     }
     effective = sp;
