@@ -248,3 +248,29 @@ def test_binding_text_names_a_full_budget():
     assert binding_text(fam, roomy, [roomy, cand(1200, 8000, 9000)]).startswith("none (larger n fit")
     whole = cand(7866, 5000, 9000)
     assert binding_text(fam, whole, [whole]) == "none (the whole sub-cover fits)"
+
+
+def test_a_rate_miss_does_not_end_the_search():
+    """Regression: once one candidate missed the rate budget every larger n was skipped, but the certified
+    worst case is not monotone in n, and the 2.5 cm room's cover fell from n = 26 to n = 5
+    (conservativeness 1.33 -> 18). A larger n that fits must still be realised."""
+    import types
+
+    from polycc.budget import select as sel
+
+    fits = {(5, None): True, (10, None): False, (26, None): True, (20, 8): True, (40, 8): False, (50, 8): True}
+    asked = []
+
+    def fake_realise(family, n, T, *a, **k):
+        asked.append((n, T))
+        return types.SimpleNamespace(n=n, max_normals=T, meets_rate=fits[(n, T)])
+
+    orig = sel.realise
+    sel.realise = fake_realise
+    try:
+        pairs = list(fits)
+        out = sel._realise_many(None, None, pairs, {n: 0 for n, _ in pairs}, 1.0, 0)
+    finally:
+        sel.realise = orig
+    assert asked == pairs
+    assert [(c.n, c.max_normals) for c in out if c.meets_rate] == [(5, None), (26, None), (20, 8), (50, 8)]
