@@ -58,6 +58,8 @@ typedef struct decision {
     uint32_t from, to; /* flown for from <= tick < to (stabilizer ticks) */
     bool pass;         /* the live setpoint passes while it stays near `planned` */
     bool brake;        /* the backup: the brake policy at the live estimate (polycc_shield_brake) */
+    bool land;         /* a landing: hold x, y at `at`, the source's z (u[2]: its desired vz, capped) */
+    float at[2];       /* where the landing began, m */
     bool valid;
 } decision_t;
 
@@ -228,6 +230,48 @@ static void override(setpoint_t *sp, const float u[3])
     trace.overrides += 1u;
 }
 
+/* A landing: the horizontal position held at at[], the source's vertical setpoint as sent while the
+ * desired vertical velocity uz is not faster down than POLYCC_SHIELD_LAND_SPEED, that speed otherwise. */
+static void overrideLand(setpoint_t *sp, const float at[2], float uz)
+{
+    sp->mode.x = modeAbs;
+    sp->mode.y = modeAbs;
+    sp->position.x = at[0];
+    sp->position.y = at[1];
+    sp->velocity.x = 0.0f;
+    sp->velocity.y = 0.0f;
+    sp->velocity_body = false;
+    sp->acceleration.x = 0.0f;
+    sp->acceleration.y = 0.0f;
+    if (uz < -POLYCC_SHIELD_LAND_SPEED) {
+        sp->mode.z = modeVelocity;
+        sp->velocity.z = -POLYCC_SHIELD_LAND_SPEED;
+        sp->acceleration.z = 0.0f;
+    }
+    trace.overrides += 1u;
+}
+
+/* The source asks for a descent straight down (POLYCC_SHIELD_LAND_*): m the mailbox, landing: the previous
+ * decision was a landing. */
+static bool landingAsked(const mailbox_t *m, bool landing)
+{
+    const float h2 = POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED;
+    /* once landing, any descent asked goes on to touchdown (a position setpoint at the floor asks for less
+     * and less as the vehicle nears it) */
+    return m->ud[2] < (landing ? 0.0f : -POLYCC_SHIELD_HOLD_SPEED) && m->ud[0] * m->ud[0] + m->ud[1] * m->ud[1] <= h2 &&
+           m->vel[0] * m->vel[0] + m->vel[1] * m->vel[1] <= h2 &&
+           m->vel[2] >= -(POLYCC_SHIELD_LAND_SPEED + POLYCC_SHIELD_HOLD_SPEED);
+}
+
+/* The desired velocity u leads away from the nearest obstacle: within 60 deg of psi's gradient g. */
+static bool awayFrom(const float u[3], const float g[3])
+{
+    const float dot = (u[0] * g[0] + u[1] * g[1]) + u[2] * g[2];
+    const float uu = (u[0] * u[0] + u[1] * u[1]) + u[2] * u[2];
+    const float gg = (g[0] * g[0] + g[1] * g[1]) + g[2] * g[2];
+    return dot > 0.0f && dot * dot >= 0.25f * (uu * gg);
+}
+
 static bool near3(const float a[3], const float b[3], float tol)
 {
     return fabsf(a[0] - b[0]) <= tol && fabsf(a[1] - b[1]) <= tol && fabsf(a[2] - b[2]) <= tol;
@@ -289,6 +333,10 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
         return;
     }
     holding = false;
+    if (d.land) {
+        overrideLand(sp, d.at, ud[2]);
+        return;
+    }
     if (d.pass && near3(ud, d.planned, POLYCC_SHIELD_PASS_TOL)) {
         return;
     }
@@ -315,6 +363,8 @@ void polycc_controller_plan(uint32_t now)
     const float *uApp;
     float speed2, udxy2;
     float uB[3];
+    bool landNow;
+    decision_t prev;
     uint32_t f;
     if (!pOn && !on) {
         trace.status = POLYCC_SHIELD_STATUS_OFF;
@@ -371,6 +421,16 @@ void polycc_controller_plan(uint32_t now)
         return;
     }
     fillParams(&jobPrm);
+    /* At the tube's edge: a vehicle held where psi = tube can certify nothing (the first sample covers a
+     * ball of radius psi - tube = 0), not even leaving, and was held there until the source stopped the
+     * motors (regression: a go_to back from a box on the real firmware, then a drop from 0.54 m).  When the
+     * source asks to move away from the nearest obstacle, the plan keeps psi >= (its last value -
+     * POLYCC_SHIELD_ESCAPE_DEPTH) instead, never below 0 (clearance r). */
+    if (d.valid && lPsi < jobPrm.tube + POLYCC_SHIELD_ESCAPE_DEPTH && awayFrom(m.ud, job.grad)) {
+        const float t = lPsi - POLYCC_SHIELD_ESCAPE_DEPTH;
+        jobPrm.tube = t > 0.0f ? t : 0.0f;
+        trace.escapes += 1u;
+    }
     if (d.valid && d.brake) { /* flown as the brake policy: its command at this estimate */
         polycc_shield_brake(uB, m.vel, brakeErr());
         uApp = uB;
@@ -391,12 +451,28 @@ void polycc_controller_plan(uint32_t now)
     if (f & POLYCC_SHIELD_EVAL_CAP) {
         trace.eval_caps += 1u;
     }
+    prev = d;
     memset(&d, 0, sizeof d);
     d.valid = true;
     d.from = m.tick + POLYCC_SHIELD_PERIOD_TICKS;
     d.to = m.tick + 2u * POLYCC_SHIELD_PERIOD_TICKS;
     memcpy(d.planned, m.ud, sizeof d.planned);
-    if (f & POLYCC_SHIELD_CERTIFIED) {
+    landNow = !((f & POLYCC_SHIELD_CERTIFIED) && !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED))) &&
+              landingAsked(&m, prev.valid && prev.land);
+    if (landNow) { /* touch down on what is below instead of hovering over it (POLYCC_SHIELD_LAND_*) */
+        d.land = true;
+        if (prev.valid && prev.land) {
+            memcpy(d.at, prev.at, sizeof d.at);
+        } else {
+            d.at[0] = m.pos[0];
+            d.at[1] = m.pos[1];
+        }
+        d.u[2] = m.ud[2] > -POLYCC_SHIELD_LAND_SPEED ? m.ud[2] : -POLYCC_SHIELD_LAND_SPEED;
+        trace.landings += 1u;
+        if (pOn) {
+            trace.status = POLYCC_SHIELD_STATUS_LANDING;
+        }
+    } else if (f & POLYCC_SHIELD_CERTIFIED) {
         trace.certified += 1u;
         memcpy(d.u, job.u_c, sizeof d.u);
         d.pass = !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED));
@@ -440,7 +516,6 @@ void controllerOutOfTree(control_t *control, const setpoint_t *setpoint, const s
     /* The FreeRTOS tick, not stabilizerStep: the app side stamps its decisions with xTaskGetTickCount(),
      * and stabilizerStep starts at 1 only after calibration, seconds behind it (on the real firmware a
      * stabilizerStep stamp made every mailbox look stale: status 8, the shield off while enabled). */
-    (void)stabilizerStep;
     polycc_controller_filter(&sp, pos, vel, acc, state->attitude.yaw, (uint32_t)xTaskGetTickCount());
     controllerPid(control, &sp, sensors, state, stabilizerStep);
 }
@@ -471,7 +546,8 @@ PARAM_GROUP_STOP(polyccShield)
  * polycc shield state.
  */
 LOG_GROUP_START(polyccShield)
-/** @brief 0 off, 1 pass, 2 filtered, 3 backup (braking), 4 manual (unfiltered), 5 off pending, 6 too slow, 7 starting */
+/** @brief 0 off, 1 pass, 2 filtered, 3 backup (braking), 4 manual (unfiltered), 5 off pending, 6 too slow, 7 starting,
+ * 8 no out-of-tree controller, 9 landing */
 LOG_ADD(LOG_UINT8, status, &trace.status)
 /** @brief Decisions made (100 Hz while on) */
 LOG_ADD(LOG_UINT32, decisions, &trace.decisions)
@@ -481,6 +557,10 @@ LOG_ADD(LOG_UINT32, backups, &trace.backups)
 LOG_ADD(LOG_UINT32, infeasible, &trace.infeasible)
 /** @brief Ticks with a manual setpoint passed unfiltered */
 LOG_ADD(LOG_UINT32, manual, &trace.manual)
+/** @brief Decisions flown as a landing (a descent asked straight down) */
+LOG_ADD(LOG_UINT32, landings, &trace.landings)
+/** @brief Plans made with the tube lowered to leave its edge (moving away from the nearest obstacle) */
+LOG_ADD(LOG_UINT32, escapes, &trace.escapes)
 /** @brief psi at the last decision's estimate, m */
 LOG_ADD(LOG_FLOAT, psi, &lPsi)
 /** @brief Smallest psi - tube over the last plan's samples, m */

@@ -28,7 +28,8 @@
  * while the shield changes the setpoint: until the source's setpoint lies where the vehicle is (within
  * POLYCC_SHIELD_HANDBACK_GAP horizontally, position modes) and the shield passes it unchanged or the
  * vehicle is at rest and the source asks it to stay or to descend straight down (slower than
- * POLYCC_SHIELD_HOLD_SPEED).
+ * POLYCC_SHIELD_HOLD_SPEED).  A descent asked straight down is flown as a landing
+ * (POLYCC_SHIELD_LAND_SPEED), so a landing with the shield on touches down.
  */
 #ifndef POLYCC_CONTROLLER_H
 #define POLYCC_CONTROLLER_H
@@ -47,7 +48,8 @@
 #define POLYCC_SHIELD_STATUS_TOO_SLOW 6u    /* the scene's worst case does not fit a stabilizer tick: refused */
 #define POLYCC_SHIELD_STATUS_STARTING 7u    /* just switched on: the first plan is being computed, setpoints pass */
 #define POLYCC_SHIELD_STATUS_NO_CONTROLLER 8u /* enabled, but stabilizer.controller is not the out-of-tree one */
-#define POLYCC_SHIELD_STATUS_COUNT 9u
+#define POLYCC_SHIELD_STATUS_LANDING 9u     /* a descent asked straight down: flown to touchdown */
+#define POLYCC_SHIELD_STATUS_COUNT 10u
 
 #define POLYCC_SHIELD_PERIOD_TICKS 10u /* 100 Hz decisions at the 1 kHz stabilizer tick */
 /* Share of the CPU over one period (10 ms = 1 680 000 cycles) a plan may use, percent. */
@@ -76,6 +78,19 @@
 #define POLYCC_SHIELD_HOLD_SPEED 0.1f
 /* Switching off hands back only a position setpoint this close to the estimate (horizontal, m). */
 #define POLYCC_SHIELD_HANDBACK_GAP 0.1f
+/* Landing (docs/barrier.md section 8): when the shield would not pass the setpoint unchanged, the
+ * source asks to go down faster than POLYCC_SHIELD_HOLD_SPEED and horizontally slower than it, and the
+ * vehicle moves horizontally slower than it and not down faster than POLYCC_SHIELD_LAND_SPEED +
+ * POLYCC_SHIELD_HOLD_SPEED, the decision is a landing: the horizontal position held where it began, the
+ * source's vertical setpoint flown as sent (capped at LAND_SPEED down), until the source stops the
+ * motors.  As sent, not slowed: the high-level commander stops the motors when its land trajectory ends,
+ * wherever the vehicle is, so a landing that lagged it would end in a drop.  Without the landing, the
+ * shield held the vehicle radius + tube above the floor (or beside a box, where a descent is not
+ * certified either) and it dropped from there when the motors stopped. */
+#define POLYCC_SHIELD_LAND_SPEED 1.0f /* m/s: the PID position loop's own limit (POLYCC_SHIELD_POS_VMAX) */
+/* At the tube's edge (psi < tube + this, m), a plan for a desired velocity within 60 deg of psi's gradient
+ * keeps psi >= last psi - this instead of >= tube (floor 0): a vehicle held at psi = tube can leave. */
+#define POLYCC_SHIELD_ESCAPE_DEPTH 0.005f
 /* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
 #define POLYCC_SHIELD_POS_KP 2.0f
 #define POLYCC_SHIELD_POS_VMAX 1.0f
@@ -107,6 +122,8 @@ typedef struct polycc_controller_trace {
     uint32_t manual;      /* ticks with a manual setpoint passed unfiltered */
     uint32_t eval_caps;   /* plans not covered within their evaluations */
     uint32_t overrides;   /* ticks the setpoint was replaced */
+    uint32_t landings;    /* decisions flown as a landing */
+    uint32_t escapes;     /* plans made with the tube lowered to leave its edge */
     uint32_t last_flags;  /* POLYCC_SHIELD_* of the last finished plan */
     uint32_t last_evals;
     float last_min_c;     /* m */

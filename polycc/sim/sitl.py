@@ -249,7 +249,8 @@ class Simulator:
         trial.jerk = np.linalg.norm(np.diff(A, axis=0), axis=1) / 0.01 if len(A) > 1 else np.zeros(0)
         if cfg.shield:
             tr = lib.polycc_controller_trace()
-            keys = ("decisions", "certified", "backups", "infeasible", "manual", "eval_caps", "overrides")
+            keys = ("decisions", "certified", "backups", "infeasible", "manual", "eval_caps", "overrides", "landings",
+                    "escapes")
             trial.shield = {k: int(getattr(tr, k)) for k in keys}
         if io is not None:
             f3 = lambda k: np.asarray(io[k], np.float32).reshape(-1, 3)  # noqa: E731

@@ -414,3 +414,13 @@ def demo_box_distance(P: np.ndarray, name: str = "box_2") -> np.ndarray:
     rot = np.array([[math.cos(yaw), math.sin(yaw), 0], [-math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
     q = np.abs(d @ rot.T) - half
     return np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+
+
+def motors_stop_height(rows: np.ndarray, floor_z: float = 0.0) -> float:
+    """Height (m) above ``floor_z`` at which the motors stopped at the end of a Recorder's rows (t, x, y, z, vz,
+    motors_on, status): the last sample with the motors on; inf if they never stopped."""
+    rows = np.asarray(rows, np.float64)
+    if len(rows) == 0 or rows[-1, 5] > 0:
+        return math.inf
+    on = np.flatnonzero(rows[:, 5] > 0)
+    return float(rows[on[-1], 3] - floor_z) if len(on) else math.inf

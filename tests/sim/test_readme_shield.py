@@ -1,6 +1,7 @@
 """The README's shield example (a user's own cflib MotionCommander script), run as written (only the
 URI changed) against the simulated Crazyflie: straight at the demo arena's box_2 at 1 m/s, it stops
-with clearance >= r = 0.1 m; the same script with the shield left off flies into the box."""
+with clearance >= r = 0.1 m, then lands with the shield on (the motors stop on the floor); the same script
+with the shield left off flies into the box."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from polycc.testing.files import readme_block
-from polycc.testing.flight_scenarios import Recorder, demo_box_distance
+from polycc.testing.flight_scenarios import Recorder, demo_box_distance, motors_stop_height
 from polycc.testing.worlds import FastWorld
 
 pytest.importorskip("cflib")
@@ -38,7 +39,7 @@ def test_readme_shield_example_stops_in_front_of_the_box_and_off_it_crashes(tmp_
     assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000",
                  "-o", str(tmp_path / "b")]) == 0
     code = readme_example()
-    worst = {}
+    worst, cut = {}, {}
     for shield in (True, False):
         src = code if shield else code.replace('"polyccShield.enable", 1', '"polyccShield.enable", 0')
         with FastWorld(tmp_path / "b" / "polytopes.h", START) as world:
@@ -50,7 +51,13 @@ def test_readme_shield_example_stops_in_front_of_the_box_and_off_it_crashes(tmp_
         xyz = a[:, 1:4]
         assert xyz[:, 2].max() > 0.4  # it took off
         worst[shield] = float(box_distance(xyz).min() - R)
+        cut[shield] = motors_stop_height(a, START[2])
         if shield:
             assert counters[0] > 100 and counters[1] > 0, counters  # the shield decided, and braked
     assert worst[True] >= 0.0, f"shield on: {-worst[True]:.3f} m into the box"
     assert worst[False] < -0.05, "shield off: the same script must fly into the box (the test can fail)"
+    # it lands with the shield on as with it off (regression: held radius + tube above the floor, or beside the
+    # box at 0.5 m, then dropped from there). MotionCommander's land() goes down by its own height estimate
+    # and stops the motors about 0.1 m up either way.
+    print(f"motors stopped {cut[True]:.3f} m above the floor with the shield on, {cut[False]:.3f} off")
+    assert cut[True] <= cut[False] + 0.03, f"shield on: the motors stopped {cut[True]:.3f} m above the floor"

@@ -20,7 +20,7 @@ from polycc.sim.sitl_device import SitlDeviceModel
 R = 0.1
 WALL_X = 2.0
 STATUS = {"off": 0, "pass": 1, "filtered": 2, "backup": 3, "manual": 4, "off_pending": 5, "too_slow": 6,
-          "starting": 7, "no_controller": 8}
+          "starting": 7, "no_controller": 8, "landing": 9}
 
 
 @pytest.fixture(scope="module")
@@ -227,3 +227,104 @@ def test_plan_budget_matches_the_cycle_model(header):
     for w in (10_000, 115_470, 200_000, 400_000):  # the demo arena at 8 KiB: 115 470 cycles -> 3 evaluations
         assert CM.shield_plan_cycles(w) <= 420_000
     assert CM.shield_max_evals(115_470) == 3 and CM.shield_max_evals(400_000) == 0
+
+
+@pytest.fixture(scope="module")
+def floor_header(tmp_path_factory):
+    """A floor slab (top at z = 0, where the vehicle's centre rests when landed) and the wall."""
+    d = tmp_path_factory.mktemp("floor")
+    write_outputs(d, [axis_box([-3, -3, -0.3], [3, 3, 0.0]), axis_box([WALL_X, -2, 0], [2.3, 2, 2])], {"kappa": 100.0})
+    return d / "polytopes.h"
+
+
+def _land_model(floor_header, dynamics):
+    m = SitlDeviceModel(floor_header, start=(0.0, 0.0, 0.8), dynamics=dynamics, floor_z=0.0)
+    m.app.set_param("stabilizer", "controller", int(m.app.lib.ControllerTypeOot))
+    m.app.set_param("polyccShield", "enable", 1)
+    m.app.set_param("polyccShield", "radius", R)
+    return m
+
+
+def _run(m, seconds: float, every_ms: int = 10, v=None) -> None:
+    for _ in range(int(seconds * 1000)):
+        if v is not None and m.sim_ms % every_ms == 0:
+            m._set_client(True, mode=(2, 2, 2), v=v)
+        m.step()
+
+
+def _land(m, how: str) -> tuple[float, set]:
+    """Lands from hovering at 0.8 m; returns (height when the motors stopped, statuses seen)."""
+    lib = m.app.lib
+    seen = set()
+    if how == "motion_commander":  # land(): down(height) at 0.2 m/s (50 ms packets), then send_stop_setpoint()
+        _run(m, 0.5, v=(0.0, 0.0, 0.0))
+        for _ in range(int(0.8 / 0.2 / 0.05)):
+            _run(m, 0.05, v=(0.0, 0.0, -0.2))
+            seen.add(int(_trace(m).status))
+        z_cut = float(m.dyn.p[2])
+        m._set_client(False)
+    else:  # hovering under the high-level commander (as after its takeoff): land(0, 3 s); the planner stops
+        _run(m, 0.5)  # the motors itself when the land trajectory ends
+        assert lib.crtpCommanderHighLevelLand(0.0, 3.0) == 0
+        z_cut = np.inf
+        for _ in range(80):
+            _run(m, 0.05)
+            seen.add(int(_trace(m).status))
+            if m.motors_on:
+                z_cut = float(m.dyn.p[2])
+    _run(m, 1.0)
+    assert not m.motors_on
+    return z_cut, seen
+
+
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+@pytest.mark.parametrize("how", ["motion_commander", "high_level"])
+def test_landing_with_the_shield_on_touches_down_before_the_motors_stop(floor_header, dynamics, how):
+    """Regression (issue 18): landed with the shield on, the floor (an obstacle of the cover) held the vehicle
+    radius + tube = 0.15 m above it until the source stopped the motors: a drop, 1.7 m/s at touchdown. A
+    descent asked straight down is now flown as a landing (status landing: x, y held, the source's vertical
+    setpoint as sent), so it touches down as it does with the shield off.
+    how: cflib MotionCommander's land() or the high-level commander's land."""
+    m = _land_model(floor_header, dynamics)
+    z_cut, seen = _land(m, how)
+    landings, impact = int(_trace(m).landings), m.dyn.impact_speed_ms  # (one app library: the next model resets it)
+    off = _land_model(floor_header, dynamics)
+    off.app.set_param("polyccShield", "enable", 0)
+    z_off, _ = _land(off, how)
+    assert STATUS["landing"] in seen and landings > 0
+    assert z_cut < 0.03, f"the motors stopped {z_cut:.3f} m above the floor"
+    # as gentle as with the shield off, or a touchdown no harder than a 1 cm drop (0.45 m/s): the motors may stop
+    # a few millimetres before or after the floor depending on the vehicle model
+    assert impact <= max(off.dyn.impact_speed_ms + 0.05, 0.45), \
+        f"touchdown at {impact:.2f} m/s, {off.dyn.impact_speed_ms:.2f} with the shield off"
+    assert abs(float(m.dyn.p[0])) < 0.05 and abs(float(m.dyn.p[1])) < 0.05  # straight down
+
+
+def test_a_slow_descent_at_the_wall_is_not_a_landing(floor_header):
+    """The landing exception is a descent asked straight down: a stream down and into the wall (0.3 m/s
+    horizontally) is still braked and held clear of the wall."""
+    m = _land_model(floor_header, "crazyflie")
+    _run(m, 3.0, v=(1.0, 0.0, 0.0))  # stopped in front of the wall
+    worst = np.inf
+    for _ in range(300):
+        _run(m, 0.01, v=(0.3, 0.0, -0.2))
+        worst = min(worst, _clearance(m))
+        assert _trace(m).status != STATUS["landing"]
+    assert worst >= 0.0
+
+
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+@pytest.mark.parametrize("x0", [1.85, 1.86])  # psi = tube (0.05 m) and 1 cm inside the tube
+def test_a_vehicle_held_at_the_tube_edge_can_leave_but_not_approach(header, dynamics, x0):
+    """Regression (issue 18, seen on the real firmware): held where psi = tube, the first sample of every plan
+    covers a ball of radius psi - tube = 0, so nothing was certified, not even flying away: a go_to back from
+    box_2 stayed held until the high-level land stopped the motors, a drop from 0.54 m. Now a desired velocity
+    within 60 deg of psi's gradient is planned with the tube lowered to the last psi - 5 mm (counted in
+    `escapes`): it leaves; toward the wall it is still held."""
+    m = _model(header, dynamics, start=(x0, 0.0, 1.0))
+    c0 = _clearance(m)
+    worst = _stream(m, (0.5, 0.0, 0.0), 1.0)  # toward the wall: held
+    assert worst >= c0 - 0.01 and _trace(m).escapes == 0
+    _stream(m, (-0.5, 0.0, 0.0), 2.0)  # away: leaves
+    assert float(m.dyn.p[0]) < x0 - 0.5, f"still held at x = {float(m.dyn.p[0]):.3f}"
+    assert _trace(m).escapes > 0
