@@ -46,6 +46,7 @@ static float pPsiCap = POLYCC_SHIELD_DEFAULT_PSI_CAP;
 /* ---- stabilizer -> app: the latest setpoint and estimate (under taskENTER_CRITICAL) ---- */
 typedef struct mailbox {
     float pos[3], vel[3], acc[3], ud[3];
+    float sv[3];  /* the setpoint's own velocity (feed-forward), world frame, m/s */
     float gap2; /* squared horizontal distance, m^2, from a position setpoint to the estimate (0: none) */
     uint32_t tick;
     bool manual, valid;
@@ -165,13 +166,16 @@ const polycc_shield_job_t *polycc_controller_job(void)
     return &job;
 }
 
-/* The velocity the PID cascade aims for under sp (world frame); false for manual setpoints. */
-static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_deg, float u[3])
+/* The velocity u the PID cascade aims for under sp (world frame), and sv the setpoint's own velocity (its
+ * feed-forward, world frame); false for manual setpoints. */
+static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_deg, float u[3], float sv[3])
 {
     const stab_mode_t m[3] = {sp->mode.x, sp->mode.y, sp->mode.z};
-    float sv[3] = {sp->velocity.x, sp->velocity.y, sp->velocity.z};
     const float spp[3] = {sp->position.x, sp->position.y, sp->position.z};
     int i;
+    sv[0] = sp->velocity.x;
+    sv[1] = sp->velocity.y;
+    sv[2] = sp->velocity.z;
     if (m[0] == modeDisable || m[1] == modeDisable || m[2] == modeDisable) {
         return false;
     }
@@ -251,14 +255,19 @@ static void overrideLand(setpoint_t *sp, const float at[2], float uz)
     trace.overrides += 1u;
 }
 
-/* The source asks for a descent straight down (POLYCC_SHIELD_LAND_*): m the mailbox, landing: the previous
- * decision was a landing. */
+/* The source asks for a descent straight down (POLYCC_SHIELD_LAND_*): its setpoint moves straight down (its
+ * own velocity: a high-level land starts from the last setpoint, which may lie away from a vehicle the
+ * shield held; the landing is flown where the vehicle is), or the PID aims straight down (a position
+ * setpoint below the vehicle).  m the mailbox, landing: the previous decision was a landing (then any
+ * descent goes on to touchdown: a position setpoint at the floor asks for less and less as the vehicle
+ * nears it). */
 static bool landingAsked(const mailbox_t *m, bool landing)
 {
     const float h2 = POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED;
-    /* once landing, any descent asked goes on to touchdown (a position setpoint at the floor asks for less
-     * and less as the vehicle nears it) */
-    return m->ud[2] < (landing ? 0.0f : -POLYCC_SHIELD_HOLD_SPEED) && m->ud[0] * m->ud[0] + m->ud[1] * m->ud[1] <= h2 &&
+    const bool svDown = m->sv[2] < -POLYCC_SHIELD_HOLD_SPEED && m->sv[0] * m->sv[0] + m->sv[1] * m->sv[1] <= h2;
+    const bool udDown = m->ud[2] < -POLYCC_SHIELD_HOLD_SPEED && m->ud[0] * m->ud[0] + m->ud[1] * m->ud[1] <= h2;
+    const bool goOn = landing && (m->ud[2] < 0.0f || m->sv[2] < 0.0f) && m->sv[0] * m->sv[0] + m->sv[1] * m->sv[1] <= h2;
+    return (svDown || udDown || goOn) &&
            m->vel[0] * m->vel[0] + m->vel[1] * m->vel[1] <= h2 &&
            m->vel[2] >= -(POLYCC_SHIELD_LAND_SPEED + POLYCC_SHIELD_HOLD_SPEED);
 }
@@ -281,8 +290,8 @@ static bool near3(const float a[3], const float b[3], float tol)
 void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float vel[3], const float acc[3],
                               float yaw_deg, uint32_t tick)
 {
-    float ud[3] = {0.0f, 0.0f, 0.0f}, ub[3];
-    bool manual = !desiredVelocity(sp, pos, yaw_deg, ud), isOn;
+    float ud[3] = {0.0f, 0.0f, 0.0f}, sv[3], ub[3];
+    bool manual = !desiredVelocity(sp, pos, yaw_deg, ud, sv), isOn;
     const float gx = sp->mode.x == modeAbs ? sp->position.x - pos[0] : 0.0f;
     const float gy = sp->mode.y == modeAbs ? sp->position.y - pos[1] : 0.0f;
     decision_t d;
@@ -291,6 +300,7 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
     memcpy(mbox.vel, vel, sizeof mbox.vel);
     memcpy(mbox.acc, acc, sizeof mbox.acc);
     memcpy(mbox.ud, ud, sizeof mbox.ud);
+    memcpy(mbox.sv, sv, sizeof mbox.sv);
     mbox.gap2 = gx * gx + gy * gy;
     mbox.tick = tick;
     mbox.manual = manual;

@@ -424,3 +424,17 @@ def motors_stop_height(rows: np.ndarray, floor_z: float = 0.0) -> float:
         return math.inf
     on = np.flatnonzero(rows[:, 5] > 0)
     return float(rows[on[-1], 3] - floor_z) if len(on) else math.inf
+
+
+def demo_hoop_distance(P: np.ndarray, name: str = "hoop_0") -> np.ndarray:
+    """Exact distance (m) from points (world frame) to the ring (a torus: major radius, tube radius) of a
+    hoop of the demo arena; its stand is left out."""
+    from polycc.demo.arena import demo_arena_description
+
+    h = next(b for b in demo_arena_description()["hoops"] if b["name"] == name)
+    c, n = np.array(h["center"], np.float64), np.array(h["normal"], np.float64)
+    n = n / np.linalg.norm(n)
+    d = np.asarray(P, np.float64).reshape(-1, 3) - c
+    ax = d @ n
+    rho = np.linalg.norm(d - np.outer(ax, n), axis=1)
+    return np.hypot(rho - h["major_radius"], ax) - h["tube_radius"]

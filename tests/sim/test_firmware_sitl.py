@@ -341,6 +341,66 @@ def test_high_level_go_to_through_a_box_on_the_real_firmware(arena, shield):
         assert c < -0.05, "shield off: the go_to must fly into the box (the test can fail)"
 
 
+def _septic_piece(p0: float, p1: float, T: float) -> list[float]:
+    """Coefficients (increasing powers of t, s) of the rest-to-rest septic from p0 to p1 in T seconds."""
+    a = (0.0, 0.0, 0.0, 0.0, 35.0, -84.0, 70.0, -20.0)
+    return [p0] + [(p1 - p0) * a[k] / T**k for k in range(1, 8)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("shield", [1, 0])
+def test_uploaded_trajectory_grazing_the_hoop_rim_on_the_real_firmware(arena, shield):
+    """Issue 18 scenario: a trajectory uploaded to the high-level commander's memory (cflib's TrajectoryMemory,
+    one Poly4D piece) straight through hoop_0 at 0.36 m above its centre, so 4 cm from the rim's inner
+    surface: with the shield on it never comes within r of the rim, and then lands with the shield still on
+    (the land starts from the trajectory's end, away from the held vehicle: regression, the vehicle was
+    held and dropped from 1.48 m when the planner stopped the motors); off, the same trajectory grazes the
+    rim (the test can fail)."""
+    from cflib.crazyflie.mem import MemoryElement
+    from cflib.crazyflie.mem.trajectory_memory import Poly4D
+
+    from polycc.link.cflib_tools import close_without_stop, set_param
+    from polycc.testing.worlds import FirmwareWorld
+
+    x0, x1, y, z, T = -2.2, -0.2, -1.4, 1.26, 3.0
+    traj = [Poly4D(T, Poly4D.Poly(_septic_piece(x0, x1, T)), Poly4D.Poly([y] + [0.0] * 7),
+                   Poly4D.Poly([z] + [0.0] * 7), Poly4D.Poly())]
+    with FirmwareWorld(arena["dir"] / "polytopes.h", (x0, y, 0.0), cf2=arena["build"]) as w:
+        scf = _connect(w)
+        try:
+            cf = scf.cf
+            set_param(cf, "stabilizer.controller", OOT_CONTROLLER_FORK)
+            mem = cf.mem.get_mems(MemoryElement.TYPE_TRAJ)[0]
+            mem.trajectory = traj
+            mem.write_data_sync()
+            hl = cf.high_level_commander
+            hl.define_trajectory(1, 0, len(traj))
+            with fs.Recorder(w, {}) as rec:
+                hl.takeoff(z, 2.5)
+                w.sleep(3.5)
+                set_param(cf, "polyccShield.enable", shield)
+                hl.start_trajectory(1, 1.0, False)
+                w.sleep(T + 1.5)
+                hl.land(0.0, 3.0)
+                w.wait_until(lambda: not w.truth()[2], 8.0)
+                w.sleep(0.3)
+            rows = rec.array()
+        finally:
+            close_without_stop(scf)
+    xyz = rows[:, 1:4]
+    c = float(fs.demo_hoop_distance(xyz, "hoop_0").min() - 0.1)
+    cut = fs.motors_stop_height(rows)
+    print(f"trajectory, shield {'on' if shield else 'off'}: closest approach to hoop_0's rim minus r = {c:+.3f} m, "
+          f"x reached {xyz[:, 0].max():+.2f}, motors stopped {cut:.3f} m above the floor")
+    assert xyz[:, 2].max() > 1.1
+    if shield:
+        assert c >= 0.0, f"shield on, real firmware: the trajectory took it {-c:.3f} m into the rim's r-ball"
+        assert cut < 0.05, f"shield on, real firmware: the motors stopped {cut:.3f} m above the floor"
+    else:
+        assert c < -0.05, "shield off: the trajectory must graze the rim (the test can fail)"
+        assert xyz[:, 0].max() > x1 - 0.1  # flown to its end
+
+
 # --------------------------------------------------------------------------- polycc sim --firmware
 @pytest.mark.slow
 def test_polycc_sim_firmware_trials(arena, tmp_path, capsys):
