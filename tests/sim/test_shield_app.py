@@ -328,3 +328,31 @@ def test_a_vehicle_held_at_the_tube_edge_can_leave_but_not_approach(header, dyna
     _stream(m, (-0.5, 0.0, 0.0), 2.0)  # away: leaves
     assert float(m.dyn.p[0]) < x0 - 0.5, f"still held at x = {float(m.dyn.p[0]):.3f}"
     assert _trace(m).escapes > 0
+
+
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+def test_high_level_land_after_the_shield_held_a_go_to_lands_where_the_vehicle_is(floor_header, dynamics):
+    """Regression (issue 18, seen on the real firmware with an uploaded trajectory through hoop_0): the
+    high-level land starts from the last setpoint, behind the wall that held the vehicle, so the PID's aim
+    was not straight down; the shield kept holding and the planner's motor stop at the land's end dropped
+    the vehicle from flight height. The landing now follows the setpoint's own (straight-down) velocity and
+    is flown where the vehicle is."""
+    m = _land_model(floor_header, dynamics)
+    lib = m.app.lib
+    assert lib.crtpCommanderHighLevelGoTo(4.0, 0.0, 0.8, 0.0, 3.0, False) == 0
+    worst = np.inf
+    for _ in range(4000):
+        m.step()
+        worst = min(worst, _clearance(m))
+    x_held = float(m.dyn.p[0])
+    assert x_held < WALL_X - R and worst >= 0.0
+    assert lib.crtpCommanderHighLevelLand(0.0, 3.0) == 0
+    z_cut = np.inf
+    for _ in range(4000):
+        m.step()
+        worst = min(worst, _clearance(m))
+        if m.motors_on:
+            z_cut = float(m.dyn.p[2])
+    assert not m.motors_on, "the planner stops the motors when its land ends"
+    assert z_cut < 0.03, f"the motors stopped {z_cut:.3f} m above the floor"
+    assert worst >= 0.0 and abs(float(m.dyn.p[0]) - x_held) < 0.05  # straight down where it was held
