@@ -18,6 +18,7 @@ here; the shield's cost on board is its certified cycle budget (printed, from th
 
     python bench/bench_shield.py [--pairs N] [--jobs J] [--speeds 0.5,1,2,3] [--dynamics crazyflie,quadrotor]
         [--psi-caps 0,0.6]   (shield cells on min(psi, cap): a clearance-capped barrier, issue 18)
+        [--gains 4:4,2:1]    (shield cells per ECBF gains k1:k0, polyccShield.k1/k0)
 
 Writes bench/results/shield.json.  The real-firmware SITL columns (issue 13) are not here yet.
 """
@@ -49,7 +50,8 @@ def fly_cell(job: dict) -> dict:
     shield = job["mode"] == "shield"
     sim = Simulator(job["header"], arena("demo"), brake=not shield)
     cfg = FlightConfig(vmax=job["speed"], radius=0.2 if shield else RADIUS, clearance_radius=RADIUS, shield=shield,
-                       shield_radius=RADIUS, shield_psi_cap=job["psi_cap"] if shield else 0.0)
+                       shield_radius=RADIUS, shield_psi_cap=job["psi_cap"] if shield else 0.0,
+                       shield_gains=job["gains"] if shield else None)
     trials = [sim.fly(s, g, job["dynamics"], cfg) for s, g in job["pairs"]]
     ok = [t for t in trials if t.success]
     gap = np.concatenate([t.rate_gap for t in trials if t.rate_gap is not None and len(t.rate_gap)] or [np.zeros(1)])
@@ -80,6 +82,8 @@ def main() -> int:
     ap.add_argument("--dynamics", default="crazyflie,quadrotor", help="vehicle models")
     ap.add_argument("--min-distance", type=float, default=1.5, help="minimum start-goal distance, m")
     ap.add_argument("--psi-caps", default="0", help="shield cells per psi cap, m (0: off; e.g. 0,0.6)")
+    ap.add_argument("--gains", default="4:4", help="shield cells per ECBF gains k1:k0 (1/s : 1/s^2; default 4:4, "
+                                                   "the app's; e.g. 4:4,2:1)")
     args = ap.parse_args()
     from bench_sim import pairs_for, write_header
 
@@ -95,9 +99,11 @@ def main() -> int:
               "period_share_cycles": 168_000 * 10 * int(lib.POLYCC_SHIELD_CPU_SHARE_PERCENT) // 100}
     print(f"shield plan budget: {budget}")
     caps = [float(c) for c in args.psi_caps.split(",")]
-    jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m, "psi_cap": c}
+    gains = [tuple(float(x) for x in g.split(":")) for g in args.gains.split(",")]
+    jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m, "psi_cap": c,
+             "gains": k}
             for d in args.dynamics.split(",") for s in args.speeds.split(",")
-            for m, c in [("app", 0.0)] + [("shield", c) for c in caps]]
+            for m, c, k in [("app", 0.0, None)] + [("shield", c, k) for c in caps for k in gains]]
     t0 = time.perf_counter()
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
@@ -109,9 +115,11 @@ def main() -> int:
                                   "wall_s": time.perf_counter() - t0})
             print(f"cell {len(rows)}/{len(jobs)} done", flush=True)
     rows = [r for _, r in sorted(rows, key=lambda t: t[0])]
-    head = ["model", "v m/s", "mode", "cap m", "goal", "coll.", "min clr m", "gap p1", "gap p50", "gap p99", "jerk rms",
-            "jerk p99", "t goal s", "infeas./fl", "backup/fl", "dec./fl"]
-    table = [[r["dynamics"], r["speed"], r["mode"], r["psi_cap"], f"{r['goal']}/{r['flights']}", r["collisions"],
+    head = ["model", "v m/s", "mode", "cap m", "k1:k0", "goal", "coll.", "min clr m", "gap p1", "gap p50", "gap p99",
+            "jerk rms", "jerk p99", "t goal s", "infeas./fl", "backup/fl", "dec./fl"]
+    table = [[r["dynamics"], r["speed"], r["mode"], r["psi_cap"],
+              "-" if r["gains"] is None else "{:g}:{:g}".format(*r["gains"]), f"{r['goal']}/{r['flights']}",
+              r["collisions"],
               r["min_clearance_m"], r["gap_p1"], r["gap_p50"], r["gap_p99"], r["jerk_rms"], r["jerk_p99"],
               r["time_to_goal_s"], r["infeasible_per_flight"], r["backups_per_flight"], r["decisions_per_flight"]]
              for r in rows]

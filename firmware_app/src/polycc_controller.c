@@ -467,8 +467,13 @@ void polycc_controller_plan(uint32_t now)
     d.from = m.tick + POLYCC_SHIELD_PERIOD_TICKS;
     d.to = m.tick + 2u * POLYCC_SHIELD_PERIOD_TICKS;
     memcpy(d.planned, m.ud, sizeof d.planned);
-    landNow = !((f & POLYCC_SHIELD_CERTIFIED) && !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED))) &&
-              landingAsked(&m, prev.valid && prev.land);
+    /* A landing starts when the shield would not pass the setpoint unchanged, and once started goes on while the
+     * setpoint descends, passable or not: passing would chase the setpoint's x, y (a high-level land starts
+     * from the last setpoint, away from a held vehicle), and a brake in between stops the descent, so the
+     * vehicle lagged the land and the planner's motor stop dropped it (6 cm, a loaded CI machine). */
+    landNow = landingAsked(&m, prev.valid && prev.land) &&
+              ((prev.valid && prev.land) ||
+               !((f & POLYCC_SHIELD_CERTIFIED) && !(f & (POLYCC_SHIELD_ACTIVE | POLYCC_SHIELD_SATURATED))));
     if (landNow) { /* touch down on what is below instead of hovering over it (POLYCC_SHIELD_LAND_*) */
         d.land = true;
         if (prev.valid && prev.land) {

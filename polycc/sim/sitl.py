@@ -61,6 +61,7 @@ class FlightConfig:
     shield_tube: float | None = None  # m, polyccShield.tube (default: the app's)
     shield_radius: float | None = None  # m, polyccShield.radius (default: clearance_radius, else radius)
     shield_psi_cap: float = 0.0  # m, polyccShield.psicap (0: off): fly the shield on min(psi, cap)
+    shield_gains: tuple[float, float] | None = None  # (k1 1/s, k0 1/s^2), polyccShield.k1/k0 (default: the app's)
 
     def params(self, kappa: float) -> Params:
         return Params(kappa=kappa, radius=self.radius, beta=self.beta, c_clf=self.clf_gain, v_max=self.vmax)
@@ -149,6 +150,9 @@ class Simulator:
                 cfg.clearance_radius if cfg.clearance_radius is not None else cfg.radius)
             app.set_param("polyccShield", "radius", r_sh)
             app.set_param("polyccShield", "psicap", cfg.shield_psi_cap)
+            if cfg.shield_gains is not None:
+                app.set_param("polyccShield", "k1", float(cfg.shield_gains[0]))
+                app.set_param("polyccShield", "k0", float(cfg.shield_gains[1]))
         gaps: list[float] = []
         accs: list[np.ndarray] = []
         for name, val in (("vmax", cfg.vmax), ("beta", cfg.beta), ("clfGain", cfg.clf_gain), ("radius", cfg.radius),
