@@ -54,6 +54,7 @@
 #include "polycc_controller.h"
 #include "polycc_kernel.h"
 #include "polycc_swarm.h" /* swarm: neighbour terms (docs/swarm.md) */
+#include "radiolink.h"    /* swarm: P2P broadcast (p2pRegisterCB, radiolinkSendP2PPacketBroadcast) */
 
 /* The generated scene: -DPOLYCC_SCENE_HEADER='"/abs/path/polytopes.h"' or polytopes.h on the include path. */
 #ifdef POLYCC_SCENE_HEADER
@@ -121,6 +122,23 @@ static float pSwarmV;       /* param polycc.swarmV: the neighbours' speed bound,
 static uint8_t lNbr;        /* log polycc.nNbr */
 static uint32_t swarmTick;  /* tick of the last ageing */
 static uint32_t swarmPeriodMs = 1u; /* the last period: a queued report waited at most this long */
+static uint8_t pSwarmN;     /* param polycc.swarmN: hold while fewer neighbours are known */
+static uint8_t pSwarmId;    /* param polycc.swarmId: own P2P id, 0 = no broadcast */
+static uint16_t pP2pMs;     /* param polycc.p2pMs: own broadcast period, ms (0 = none) */
+static uint16_t pP2pAgeMs;  /* param polycc.p2pAgeMs: stated age of own broadcasts, ms */
+static uint32_t lastP2pTx;  /* tick of the last own broadcast */
+static uint16_t lP2pRx, lP2pTx, lP2pDrop; /* log polycc.p2pRx/p2pTx/p2pDrop */
+
+/* P2P records heard by the radio task, read by the app task: single producer, single consumer ring.
+ * The producer writes a slot, then publishes it by advancing p2pHead; the consumer reads slots up to
+ * p2pHead, then frees them by advancing p2pTail. Full: the record is dropped and counted. */
+typedef struct {
+    uint8_t rec[POLYCC_APP_NBR_BYTES];
+    uint32_t tick; /* arrival */
+} p2pRecord_t;
+static p2pRecord_t p2pRing[POLYCC_APP_P2P_RING];
+static volatile uint32_t p2pHead, p2pTail;
+static volatile uint32_t p2pRejected; /* written by the producer only */
 
 static uint32_t floatBits(float f)
 {
@@ -368,6 +386,85 @@ static void handOverLand(void)
     pEnable = 0u;
 }
 
+/* Radio task (P2PCallback): one P2P packet heard; a neighbour record on POLYCC_APP_P2P_PORT goes into
+ * the ring with its arrival tick, anything else on that port is counted and dropped. */
+static void onP2p(P2PPacket *p)
+{
+    uint32_t head = p2pHead;
+    if (p->port != POLYCC_APP_P2P_PORT) {
+        return; /* another app's port */
+    }
+    if (p->size != POLYCC_APP_NBR_BYTES || p->data[0] != POLYCC_APP_NBR_MAGIC ||
+        head - p2pTail >= POLYCC_APP_P2P_RING) {
+        p2pRejected = p2pRejected + 1u;
+        return;
+    }
+    memcpy(p2pRing[head % POLYCC_APP_P2P_RING].rec, p->data, POLYCC_APP_NBR_BYTES);
+    p2pRing[head % POLYCC_APP_P2P_RING].tick = (uint32_t)xTaskGetTickCount();
+    __sync_synchronize(); /* the slot is written before it is published */
+    p2pHead = head + 1u;
+}
+
+/* App task: every P2P record heard since the last tick into the neighbour table, aged by its stated age
+ * plus the time since it arrived; a record stating "forget" or with the own id is refused. */
+static void drainP2p(const float x[3])
+{
+    uint32_t tail = p2pTail, head = p2pHead, now = (uint32_t)xTaskGetTickCount();
+    __sync_synchronize(); /* the slots up to head are read after head */
+    for (; tail != head; ++tail) {
+        const p2pRecord_t *r = &p2pRing[tail % POLYCC_APP_P2P_RING];
+        float pj[3];
+        uint16_t age, rmm;
+        memcpy(pj, r->rec + 2, 12);
+        memcpy(&age, r->rec + 14, 2);
+        memcpy(&rmm, r->rec + 16, 2);
+        if (age == POLYCC_APP_NBR_FORGET || (pSwarmId != 0u && r->rec[1] == pSwarmId) ||
+            polycc_swarm_report(&swarm, r->rec[1], pj, (uint32_t)age + (now - r->tick) * (1000u / configTICK_RATE_HZ),
+                                (float)rmm * 0.001f, x) < 0) {
+            lP2pDrop = (uint16_t)(lP2pDrop + 1u);
+        } else {
+            lP2pRx = (uint16_t)(lP2pRx + 1u);
+        }
+    }
+    __sync_synchronize(); /* the slots are read before they are freed */
+    p2pTail = tail;
+    lP2pDrop = (uint16_t)(lP2pDrop + p2pRejected);
+    p2pRejected = 0u; /* a rejection between the read and this write is lost from the count, not the table */
+    lNbr = (uint8_t)swarm.count;
+}
+
+/* Every polycc.p2pMs: the own estimate as a P2P neighbour record (swarmId != 0). */
+static void broadcastP2p(const float x[3])
+{
+    P2PPacket pk;
+    uint32_t now = (uint32_t)xTaskGetTickCount();
+    uint16_t rmm;
+    if (pSwarmId == 0u || pP2pMs == 0u || (now - lastP2pTx) * (1000u / configTICK_RATE_HZ) < pP2pMs || !coordOk(x[0]) ||
+        !coordOk(x[1]) || !coordOk(x[2])) {
+        return;
+    }
+    lastP2pTx = now;
+    rmm = 0xffffu; /* radius in mm, rounded up: the others' buffer is never smaller than the own radius */
+    if (pRadius >= 0.0f && pRadius < 65.0f) {
+        float mm = pRadius * 1000.0f;
+        rmm = (uint16_t)mm;
+        if ((float)rmm < mm) {
+            rmm = (uint16_t)(rmm + 1u);
+        }
+    }
+    memset(&pk, 0, sizeof pk);
+    pk.port = POLYCC_APP_P2P_PORT;
+    pk.size = (uint8_t)POLYCC_APP_NBR_BYTES;
+    pk.data[0] = POLYCC_APP_NBR_MAGIC;
+    pk.data[1] = pSwarmId;
+    memcpy(pk.data + 2, x, 12);
+    memcpy(pk.data + 14, &pP2pAgeMs, 2);
+    memcpy(pk.data + 16, &rmm, 2);
+    if (radiolinkSendP2PPacketBroadcast(&pk)) {
+        lP2pTx = (uint16_t)(lP2pTx + 1u);
+    }
+}
+
 /* Answers every app-channel packet with the status (polycc_app.h: POLYCC_APP_REPLY_BYTES). */
 static void serviceAppChannel(void)
 {
@@ -498,6 +595,17 @@ void polycc_app_init(void)
     lNbr = 0u;
     swarmTick = xTaskGetTickCount();
     swarmPeriodMs = 1u;
+    pSwarmN = 0u;
+    pSwarmId = 0u;
+    pP2pMs = POLYCC_APP_DEFAULT_P2P_MS;
+    pP2pAgeMs = POLYCC_APP_DEFAULT_P2P_AGE_MS;
+    lastP2pTx = swarmTick;
+    lP2pRx = 0u;
+    lP2pTx = 0u;
+    lP2pDrop = 0u;
+    p2pTail = p2pHead; /* records heard before init are dropped */
+    p2pRejected = 0u;
+    p2pRegisterCB(onP2p);
     (void)periodTicks(pRateHz);
     polycc_controller_init(); /* shield (polycc_controller.c): off, defaults */
 }
@@ -596,6 +704,12 @@ uint32_t polycc_app_tick(void)
         swarmPeriodMs = period * (1000u / configTICK_RATE_HZ);
     }
     serviceAppChannel();
+    if (haveEstimate) { /* swarm: neighbours heard over P2P, and the own broadcast */
+        float xe[3];
+        readVector(idX, idY, idZ, true, xe);
+        drainP2p(xe);
+        broadcastP2p(xe);
+    }
     polycc_controller_plan((uint32_t)xTaskGetTickCount()); /* shield (polycc_controller.c): a decision when due */
     if (pEnable == 0u) {
         if (engaged) {
@@ -661,7 +775,8 @@ uint32_t polycc_app_tick(void)
     }
     memcpy(lastGood, x, sizeof lastGood);
     haveLastGood = true;
-    if (polycc_swarm_stale(&swarm, POLYCC_SWARM_TIMEOUT_MS)) { /* swarm: a neighbour fell silent */
+    if (polycc_swarm_stale(&swarm, POLYCC_SWARM_TIMEOUT_MS) || swarm.count < pSwarmN) { /* swarm: a neighbour
+                                                                  fell silent, or one is not heard at all */
         lActive = 0u;
         lStatus = POLYCC_STATUS_NEIGHBOUR_LOST;
         holdPosition(x);
@@ -737,6 +852,17 @@ PARAM_ADD(PARAM_FLOAT, radius, &pRadius)
 PARAM_ADD(PARAM_UINT16, rateHz, &pRateHz)
 /** @brief Swarm: the neighbours' speed bound V, m/s; stale reports enlarge the buffer by V x age (default 1) */
 PARAM_ADD(PARAM_FLOAT, swarmV, &pSwarmV)
+/** @brief Swarm: the number of neighbours this drone must know before it moves; fewer: hold (status 13)
+ * (default 0) */
+PARAM_ADD(PARAM_UINT8, swarmN, &pSwarmN)
+/** @brief Swarm: own id in P2P broadcasts, 1-255; 0: broadcast nothing (records heard are still used)
+ * (default 0) */
+PARAM_ADD(PARAM_UINT8, swarmId, &pSwarmId)
+/** @brief Swarm: period of the own P2P broadcast, ms; 0: none (default 50) */
+PARAM_ADD(PARAM_UINT16, p2pMs, &pP2pMs)
+/** @brief Swarm: age stated in the own P2P broadcasts, ms: own estimate error / swarmV + radio latency bound
+ * (default 20) */
+PARAM_ADD(PARAM_UINT16, p2pAgeMs, &pP2pAgeMs)
 PARAM_GROUP_STOP(polycc)
 
 /**
@@ -765,4 +891,10 @@ LOG_ADD(LOG_UINT8, status, &lStatus)
 LOG_ADD(LOG_UINT16, rate, &lRate)
 /** @brief Swarm: neighbours in the table (reports received over the app channel) */
 LOG_ADD(LOG_UINT8, nNbr, &lNbr)
+/** @brief Swarm: P2P neighbour records taken into the table (wraps) */
+LOG_ADD(LOG_UINT16, p2pRx, &lP2pRx)
+/** @brief Swarm: own P2P broadcasts sent (wraps) */
+LOG_ADD(LOG_UINT16, p2pTx, &lP2pTx)
+/** @brief Swarm: P2P records refused: malformed, ring full, own id, "forget", table full (wraps) */
+LOG_ADD(LOG_UINT16, p2pDrop, &lP2pDrop)
 LOG_GROUP_STOP(polycc)

@@ -51,8 +51,9 @@
                                            a high-level landing, enable cleared */
 #define POLYCC_STATUS_SUPERVISOR 11u    /* supervisor locked, crashed or tumbled: nothing sent */
 #define POLYCC_STATUS_TOO_SLOW 12u      /* the scene's worst case does not fit even POLYCC_APP_MIN_RATE_HZ: refused */
-#define POLYCC_STATUS_NEIGHBOUR_LOST 13u /* swarm: a neighbour's report is older than POLYCC_SWARM_TIMEOUT_MS:
-                                           holding position (docs/swarm.md) */
+#define POLYCC_STATUS_NEIGHBOUR_LOST 13u /* swarm: a neighbour's report is older than POLYCC_SWARM_TIMEOUT_MS, or
+                                           fewer neighbours than param polycc.swarmN are known: holding position
+                                           (docs/swarm.md) */
 #define POLYCC_STATUS_HANDING_OVER 14u  /* disabled in the air: holding the hand-over point until the PID position
                                            controller's z integral has decayed (at most POLYCC_APP_SETTLE_MAX_MS; a
                                            high-level command takes over at once), then the high-level commander */
@@ -124,6 +125,16 @@
 #define POLYCC_APP_NBR_BYTES 18u
 #define POLYCC_APP_NBR_FORGET 0xffffu /* age field: remove this neighbour (it landed or left) */
 #define POLYCC_APP_DEFAULT_SWARM_V 1.0f /* m/s: param polycc.swarmV */
+/* Swarm over the firmware's P2P radio broadcast (radiolink.h, docs/swarm.md): the same 18-byte record
+ * is the payload of a P2P packet on this P2P port. A drone with param polycc.swarmId != 0 broadcasts its
+ * own estimate every polycc.p2pMs ms with age polycc.p2pAgeMs (its estimate error / V + the radio's
+ * latency bound); every drone takes the records it hears, whatever its own id, through a lock-free ring
+ * of POLYCC_APP_P2P_RING records (the radio task writes, the app task reads), each aged from its arrival
+ * tick. A P2P record never removes a neighbour (only the ground, which knows a drone is down, does). */
+#define POLYCC_APP_P2P_PORT 0x0bu
+#define POLYCC_APP_P2P_RING 16u
+#define POLYCC_APP_DEFAULT_P2P_MS 50u     /* param polycc.p2pMs: 20 Hz */
+#define POLYCC_APP_DEFAULT_P2P_AGE_MS 20u /* param polycc.p2pAgeMs */
 /* Certified bound of polycc_swarm_step's extra cost over polycc_step with POLYCC_SWARM_MAX neighbours
  * (Cortex-M4F cycles, from its operation count; docs/swarm.md), added to the scene's worst case. */
 #define POLYCC_APP_SWARM_WORST_CYCLES 6000u

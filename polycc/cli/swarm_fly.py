@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from polycc.cli.argtypes import number
-from polycc.cli.swarm_sim import add_coverage_options, coverage_setup
+from polycc.cli.swarm_sim import add_coverage_options, add_relay_option, coverage_setup
 from polycc.errors import PolyccError
 
 HELP = "fly real (or simulated) Crazyflies with the polycc app as a swarm covering targets of interest (cflib Swarm)"
@@ -22,8 +22,9 @@ def register(subparsers) -> None:
         help=HELP,
         description=(
             "Connects to every URI at once with cflib's Swarm, takes all drones off with the high-level commander, "
-            "relays each drone's logged position to the others over the app channel (the apps add the buffered "
-            "Voronoi half-spaces to the certified barrier: drone-drone safety is on board), runs one coverage "
+            "lets every drone know the others' positions (--relay: the apps' own P2P radio broadcasts, or this "
+            "process relaying each logged position over the app channel; the apps add the buffered Voronoi "
+            "half-spaces to the certified barrier: drone-drone safety is on board), runs one coverage "
             "controller per drone on this machine (the one `polycc swarm-sim` flies) writing polycc.goalX/Y/Z, and "
             "stops when every peak is detected, at --t-max, on Ctrl-C, or when one app stops. Then every app is "
             "disabled (the high-level commander holds) and, unless --no-land, every drone lands. No stop setpoint "
@@ -48,6 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("--latency-ms", type=number(float, 0.0, 400.0, unit="ms"), default=50.0, metavar="MS",
                    help="bound on the log up-link plus relay down-link delay, ms, added to every relayed position's "
                         "age (default: %(default)s)")
+    add_relay_option(p, default="p2p for radio:// URIs, ground for simulated udp:// drones")
     p.add_argument("--no-land", action="store_true", help="leave the drones hovering under the high-level "
                                                           "commander at the end instead of landing them")
     p.add_argument("--plot", metavar="FILE.png", help="coverage plot (default: DIR/coverage.png)")
@@ -69,6 +71,11 @@ def run(args) -> int:
     except ImportError:
         raise PolyccError("swarm-fly needs cflib: pip install 'polycc[crazyflie]'") from None
     uris = [u.strip() for u in args.uris.split(",") if u.strip()]
+    radio = all(u.startswith("radio://") for u in uris)
+    relay = args.relay or ("p2p" if radio else "ground")
+    if relay == "p2p" and not radio:
+        raise PolyccError("--relay p2p needs Crazyflies on radio:// URIs: simulated drones (udp://, `polycc "
+                          "sim-device`) have no radio between them; use --relay ground (their default)")
     _nav, cmap, targets, _centres, _rng = coverage_setup(args, out)
     last = [-1.0]
 
@@ -78,11 +85,12 @@ def run(args) -> int:
             console.print(f"t {t:5.1f} s, peaks {int(np.isfinite(flight.detected_at).sum())}/{len(targets.mu)}, "
                           f"{status_line(flight)}", soft_wrap=True)
 
-    console.print(f"connecting to {len(uris)} drones ...")
+    how = "the drones broadcast their positions (P2P)" if relay == "p2p" else "this process relays their positions"
+    console.print(f"connecting to {len(uris)} drones ({how}) ...", soft_wrap=True)
     try:
         fl = swarm_fly(uris, cmap, targets, controller=args.controller, takeoff=args.takeoff, radius=args.radius,
                        t_max=args.t_max, bcast_hz=args.bcast_hz, latency_ms=args.latency_ms, sense=args.sense,
-                       land=not args.no_land, on_update=update)
+                       land=not args.no_land, on_update=update, relay=relay)
     except KeyboardInterrupt:
         console.print("interrupted: apps disabled" + ("" if args.no_land else ", drones landed"))
         return 130
@@ -106,7 +114,8 @@ def run(args) -> int:
     task = float(np.nanmax(fl.detected_at)) if found.all() and len(found) else None
     summary = {"uris": uris, "controller": args.controller, "outcome": fl.outcome, "coverage_ratio": fl.coverage,
                "task_time_s": task, "min_inter_drone_m": fl.min_pair_m if math.isfinite(fl.min_pair_m) else None,
-               "relayed_records": fl.relayed, "end_positions": [p[-1].tolist() for p in P],
+               "relay": relay, "relayed_records": fl.relayed, "p2p": fl.p2p,
+               "end_positions": [p[-1].tolist() for p in P],
                "targets": targets.to_json()["targets"],
                "detected_at_s": [None if not f else float(v) for f, v in zip(found, fl.detected_at)],
                "notes": fl.notes}

@@ -61,12 +61,21 @@ def register(subparsers) -> None:
                         "`polycc sim --firmware`). Builds one cf2 with the app and DIR/polytopes.h (cached), runs N "
                         "SITL instances (each starting on the floor below a free takeoff column) and flies them with "
                         "real cflib exactly as `polycc swarm-fly` flies real drones: high-level takeoff to --takeoff, "
-                        "neighbours relayed over the app channel, the coverage controllers on the ground, HL landing. "
+                        "neighbours relayed as --relay says, the coverage controllers on the ground, HL landing. "
                         "Slower than real time with several instances on few cores; --dynamics does not apply")
     p.add_argument("--takeoff", type=number(float, 0.3, 3.0, unit="m"), default=0.9, metavar="Z",
                    help="with --firmware: the common takeoff height, m (default: %(default)s)")
+    add_relay_option(p, "with --firmware: ")
     add_scene_options(p, from_dir=True)
     p.set_defaults(func=run)
+
+
+def add_relay_option(p, prefix: str = "", default: str = "p2p") -> None:
+    p.add_argument("--relay", choices=("p2p", "ground"), default=None,
+                   help=prefix + "how each drone learns its neighbours' positions: p2p (the apps broadcast their "
+                        "own estimates with the radio's peer-to-peer broadcast, every 1/--bcast-hz s; the drones "
+                        "must share one radio channel) or ground (this process relays every drone's logged position "
+                        f"to the others over cflib's links) (default: {default})")
 
 
 def add_coverage_options(p) -> None:
@@ -136,6 +145,9 @@ def run(args) -> int:
                       bcast_ms=max(1, round(1000 / args.bcast_hz)), latency_ms=args.latency_ms, sense_m=args.sense,
                       t_max_s=args.t_max, dynamics=args.dynamics, controller=args.controller)
     facts = None
+    if args.relay and not args.firmware:
+        raise PolyccError("--relay applies to --firmware only: the fast simulator hands each drone's broadcast to "
+                          "the others' apps itself (--bcast-hz, --latency-ms)")
     if args.firmware:
         from polycc.swarm.firmware import run_swarm_firmware
 
@@ -143,7 +155,7 @@ def run(args) -> int:
                       f"task limit {args.t_max:g} s simulated", soft_wrap=True)
         res, facts = run_swarm_firmware(args.firmware, header, cmap, starts, targets, cfg,
                                         Clearance(scene.ellipsoids), takeoff=args.takeoff,
-                                        say=lambda m: console.print(m, soft_wrap=True))
+                                        say=lambda m: console.print(m, soft_wrap=True), relay=args.relay or "p2p")
     else:
         with console.status("building the app for this machine"):
             from polycc.sim.app_ffi import load
@@ -193,8 +205,8 @@ def run(args) -> int:
         "wall_us_per_drone_tick": res.step_us,
     }
     if facts is not None:
-        summary["firmware"] = {k: facts[k] for k in ("outcome", "notes", "relayed", "build_s", "rtf", "wall_s",
-                                                     "landed")}
+        summary["firmware"] = {k: facts[k] for k in ("outcome", "notes", "relay", "relayed", "p2p", "air", "build_s",
+                                                     "rtf", "wall_s", "landed")}
         summary["dynamics"] = "real firmware SITL (rigid body)"
     (out / "swarm.json").write_text(json.dumps(summary, indent=1) + "\n")
     mind = f"{res.min_pair_m:.3f} m (bound 2 r = {2 * args.radius:.3f} m)" if math.isfinite(res.min_pair_m) else "-"
@@ -207,9 +219,16 @@ def run(args) -> int:
                   soft_wrap=True)
     if facts is not None:
         rtf = ", ".join(f"{r:.2f}" for r in facts["rtf"] if r is not None)
+        if facts["relay"] == "p2p":
+            p2p = facts["p2p"]
+            heard = (f"P2P: {sum(d.get('p2pTx') or 0 for d in p2p)} broadcasts, "
+                     f"{sum(d.get('p2pRx') or 0 for d in p2p)} records heard, "
+                     f"{sum(d.get('p2pDrop') or 0 for d in p2p)} refused, neighbours known "
+                     + "/".join(str(d.get("nNbr")) for d in p2p))
+        else:
+            heard = f"{facts['relayed']} neighbour records relayed by the ground"
         console.print(f"real firmware: {facts['outcome']}, {'landed' if facts['landed'] else 'NOT landed'}; "
-                      f"{facts['relayed']} neighbour records relayed; RTF {rtf}; {facts['wall_s']:.0f} s wall",
-                      soft_wrap=True)
+                      f"{heard}; RTF {rtf}; {facts['wall_s']:.0f} s wall", soft_wrap=True)
         if facts["outcome"] not in ("covered", "timeout") or not facts["landed"]:
             return 1
     return 1 if dd + do else 0

@@ -27,7 +27,8 @@ STATUS_TEXT = {
     10: "link lost: handed over to a high-level landing, enable cleared",
     11: "the supervisor has locked the vehicle or detected a crash/tumble: nothing is sent",
     12: "the scene's worst-case evaluation does not fit even 10 Hz: rebuild with --rate-hz",
-    13: "a neighbour's position report is older than 0.5 s: holding position (docs/swarm.md)",
+    13: "a neighbour's position report is older than 0.5 s, or fewer neighbours than polycc.swarmN are known: "
+        "holding position (docs/swarm.md)",
     14: "disabled in the air: holding the hand-over point until the z integral has decayed, then the high-level "
         "commander holds",
 }
@@ -49,6 +50,8 @@ SWARM_WORST_CYCLES = 6000  # POLYCC_APP_SWARM_WORST_CYCLES: the neighbour terms'
 NBR_MAGIC = 0x4E  # POLYCC_APP_NBR_MAGIC: app-channel neighbour report
 NBR_FORGET = 0xFFFF  # POLYCC_APP_NBR_FORGET: this age removes the neighbour (it landed or left)
 NBR_FORMAT = "<BBfffHH"  # 'N', id, x, y, z (m), age (ms), radius (mm): POLYCC_APP_NBR_BYTES = 18
+P2P_PORT = 0x0B  # POLYCC_APP_P2P_PORT: the same record as the payload of a P2P broadcast on this P2P port
+P2P_RING = 16  # POLYCC_APP_P2P_RING: P2P records the app holds between two of its ticks
 
 
 def app_rate_hz(worst_cycles: int, requested_hz: int = DEFAULT_RATE_HZ) -> int | None:

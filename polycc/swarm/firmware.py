@@ -50,10 +50,14 @@ def column_starts(cmap: CoverageMap, n: int, height: float, min_sep: float, rng:
 
 
 def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, targets: Targets, cfg: SwarmConfig,
-                       clearance=None, takeoff: float = 0.9, say=print) -> tuple[SwarmResult, dict]:
+                       clearance=None, takeoff: float = 0.9, say=print, relay: str = "p2p",
+                       air_drop: float = 0.0) -> tuple[SwarmResult, dict]:
     """Fly ``len(starts)`` real-firmware drones (module docstring). Returns the result in the fast
     simulator's form (positions = truth every 10 ms of each drone's time) and the run's facts
-    (``outcome``, ``rtf``, ``build_s``, ``relayed``)."""
+    (``outcome``, ``rtf``, ``build_s``, ``relayed``, ``p2p``). ``relay="p2p"``: the instances broadcast to
+    each other through a :class:`polycc.sim.firmware.air.P2PAir` (losing ``air_drop`` of the packets per
+    receiver); ``"ground"``: this process relays over cflib."""
+    from polycc.sim.firmware.air import P2PAir
     from polycc.sim.firmware.build import build_cf2
     from polycc.sim.firmware.sitl import FirmwareSitl
     from polycc.swarm.fly import swarm_fly
@@ -63,9 +67,11 @@ def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, tar
     say(f"cf2 with the app: {'cached' if build.cached else 'built'} in {build.seconds:.0f} s")
     n = len(starts)
     with ExitStack() as stack:
+        air = stack.enter_context(P2PAir(drop=air_drop)) if relay == "p2p" else None
         sitls = []
         for s in starts:
-            sitls.append(stack.enter_context(FirmwareSitl(build, start=(float(s[0]), float(s[1]), 0.0))))
+            sitls.append(stack.enter_context(FirmwareSitl(build, start=(float(s[0]), float(s[1]), 0.0),
+                                                          bridge_args=["--air", air.arg] if air else [])))
         say(f"{n} SITL instances up in {time.monotonic() - t0:.0f} s")
         marks: list[tuple[float, list[float]]] = []
 
@@ -77,8 +83,9 @@ def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, tar
         fl = swarm_fly([sl.uri for sl in sitls], cmap, targets, controller=cfg.controller, takeoff=takeoff,
                        radius=cfg.radius, t_max=cfg.t_max_s, bcast_hz=min(10.0, 1000.0 / cfg.bcast_ms),
                        latency_ms=max(50.0, cfg.latency_ms), sense=cfg.sense_m, clock=clock, vmax=cfg.vmax,
-                       swarm_v=cfg.swarm_v)
+                       swarm_v=cfg.swarm_v, relay=relay)
         clock()
+        air_stats = dict(air.stats) if air else {}
         trajs = [sl.trajectory() for sl in sitls]
         stats = [sl.stats() for sl in sitls]
     wall = np.array([m[0] for m in marks])
@@ -124,5 +131,6 @@ def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, tar
                       fl.detected_by, targets, np.asarray(starts, float))
     facts = {"outcome": fl.outcome, "notes": fl.notes, "relayed": fl.relayed, "build_s": build.seconds,
              "rtf": [s.get("rtf") for s in stats], "wall_s": time.monotonic() - t0,
+             "relay": relay, "p2p": fl.p2p, "air": air_stats,
              "landed": any(x.startswith("landed") for x in fl.notes)}
     return res, facts

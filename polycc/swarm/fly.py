@@ -6,7 +6,8 @@ World frame, metres, seconds. What it does, per drone (cflib links opened in par
 1. check the app's params and the PID controller, start the position/status logs and the app-channel
    heartbeats (the same checks and session as ``polycc fly``, :mod:`polycc.ground.fly`);
 2. high-level takeoff to ``takeoff`` m, all drones at once;
-3. relay neighbours: every ``1/bcast_hz`` s each drone gets every other drone's last logged estimate as
+3. relay neighbours (``relay="ground"``; with ``"p2p"`` the drones do it themselves, below): every
+   ``1/bcast_hz`` s each drone gets every other drone's last logged estimate as
    an app-channel neighbour record (docs/swarm.md), with ``age = time since that sample arrived +
    latency_ms`` (``latency_ms`` bounds the radio up-link of the log sample plus the down-link of the
    record; assumption 2 of docs/swarm.md). The on-board barrier adds each as a buffered Voronoi
@@ -21,7 +22,15 @@ World frame, metres, seconds. What it does, per drone (cflib links opened in par
    the high-level commander, which holds), and with ``land`` each lands under the high-level commander.
    No stop setpoint is ever sent.
 
-On hardware, cflib's radio link carries the relay; the app's P2P broadcast hook is not wired (docs/swarm.md).
+Relay (``relay``, docs/swarm.md):
+
+* ``"p2p"`` (default): the drones tell each other. Each app gets ``polycc.swarmId = i + 1``,
+  ``polycc.p2pMs = 1000 / bcast_hz``, ``polycc.p2pAgeMs = latency_ms`` (the radio's latency bound) and
+  ``polycc.swarmN = n - 1`` (it holds until it has heard every other drone), and broadcasts its own
+  estimate with the nRF's peer-to-peer broadcast; every app takes the records it hears. The ground sends
+  heartbeats only, and step 3 above is the drones'. On real radios every drone must be on one channel
+  and data rate (the nRF's broadcast stays on its channel).
+* ``"ground"``: step 3 as written, over cflib's links (drones on different channels or radios).
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from polycc.swarm.coverage import Controller, CoverageMap, Targets, voronoi_cell
 LOG_PERIOD_MS = 50
 CONNECT_TIMEOUT_S = 90.0  # per attempt: TOC and all param values (a real-firmware SITL needs 6-15 s, more when loaded)
 GOAL_RESEND_M = 0.03  # a new goal is written only when it moved this much, m
+P2P_LOGS = ("polycc.nNbr", "polycc.p2pRx", "polycc.p2pTx", "polycc.p2pDrop")
 ESTIMATE_LOST_S = 2.0  # wall s without a position sample from a drone: stop (simulated drones may run slow)
 
 
@@ -71,6 +81,7 @@ class SwarmFlight:
     wall_disabled: float = math.nan
     targets: Targets | None = None
     cells: list = field(default_factory=list)  # each drone's last Voronoi cell (free-cell indices), for the plot
+    p2p: list = field(default_factory=list)  # P2P relay: each app's last nNbr, p2pRx, p2pTx, p2pDrop logs
 
     @property
     def n(self) -> int:
@@ -144,15 +155,18 @@ def _check(cf, uri: str) -> None:
 def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controller: str = "guided",
               takeoff: float = 0.9, radius: float = 0.1, t_max: float = 60.0, bcast_hz: float = 10.0,
               ctrl_hz: float = 5.0, latency_ms: float = 50.0, sense: float = 0.5, land: bool = True,
-              on_update=None, clock=None, vmax: float | None = None, swarm_v: float | None = None) -> SwarmFlight:
+              on_update=None, clock=None, vmax: float | None = None, swarm_v: float | None = None,
+              relay: str = "p2p") -> SwarmFlight:
     """Fly the swarm (module docstring). ``on_update(flight, t)`` is called about ``bcast_hz`` times a second.
     ``clock()`` (s; default: the wall clock) times the task: ``t_max``, the takeoff and landing timeouts and
     the detection times; simulated drones slower than real time pass their (slowest) simulated time.
-    ``vmax``, ``swarm_v`` (m/s), when given, set every app's ``polycc.vmax`` and ``polycc.swarmV``."""
+    ``vmax``, ``swarm_v`` (m/s), when given, set every app's ``polycc.vmax`` and ``polycc.swarmV``.
+    ``relay``: ``"p2p"`` or ``"ground"`` (module docstring)."""
     logging.getLogger("cflib.crazyflie.toccache").setLevel(logging.ERROR)
     if len(set(uris)) != len(uris) or not 1 <= len(uris) <= 16:
         raise PolyccError(f"--uris: give 1..16 distinct URIs (got {len(uris)}, the app's table holds 16 neighbours)")
     n = len(uris)
+    p2p = check_relay(uris, relay)
     sw = _connect_all(uris)
     lock = threading.Lock()
     logs = [FlightLog(["time_s", *POSITION, "polycc.status"]) for _ in uris]
@@ -168,8 +182,11 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
             _check(cf, uri)
             s = _Session(cf, logs[i], lock, None, time.monotonic() + t_max + 120.0)
             sessions.append(s)
+            if p2p and cf.log.toc.get_element_by_complete_name("polycc.p2pRx") is None:
+                raise PolyccError(f"{uri}: the app has no P2P relay (log polycc.p2pRx); flash a current polycc "
+                                  "app or use --relay ground")
             lc = LogConfig(name="polyccSwarm", period_in_ms=LOG_PERIOD_MS)
-            for name in (*POSITION, "polycc.status"):
+            for name in (*POSITION, "polycc.status", *(P2P_LOGS if p2p else ())):
                 lc.add_variable(name, cf.log.toc.get_element_by_complete_name(name).ctype)
 
             def on_data(ts, data, conf, i=i, s=s):
@@ -182,9 +199,14 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
             lc.data_received_cb.add_callback(on_data)
             lc.start()
             configs.append(lc)
-            if n == 1:  # with neighbours the relayed records are the heartbeats (each is answered like one)
+            if n == 1 or p2p:  # ground relay: the relayed records are the heartbeats (each is answered like one)
                 s.start_heartbeats()
             set_param(cf, "polycc.radius", radius)
+            if p2p:  # before the takeoff: the drones hear each other from the floor on
+                set_param(cf, "polycc.swarmN", n - 1)
+                set_param(cf, "polycc.p2pMs", max(1, round(1000.0 / bcast_hz)))
+                set_param(cf, "polycc.p2pAgeMs", min(65534, math.ceil(latency_ms)))
+                set_param(cf, "polycc.swarmId", i + 1)
             for name, v in (("polycc.vmax", vmax), ("polycc.swarmV", swarm_v)):
                 if v is not None:
                     set_param(cf, name, v)
@@ -192,12 +214,12 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
                 set_param(cf, "commander.enHighLevel", 1)
         try:
             _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bcast_hz, ctrl_hz, latency_ms,
-                 sense, arrived, lock, on_update, clock or time.monotonic)
+                 sense, arrived, lock, on_update, clock or time.monotonic, p2p)
         except KeyboardInterrupt:
             flight.outcome = "interrupted"
             raise
         finally:
-            _leave_all(flight, sessions, land, clock or time.monotonic)
+            _leave_all(flight, sessions, land, clock or time.monotonic, p2p)
     finally:
         for lc in configs:
             try:
@@ -212,13 +234,28 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
     return flight
 
 
+def check_relay(uris: list[str], relay: str) -> bool:
+    """True for the P2P relay. It needs every radio URI on one channel and data rate: the nRF's broadcast
+    is heard on its own channel only (cflib's ``radio://<dongle>/<channel>/<rate>/<address>``)."""
+    if relay not in ("p2p", "ground"):
+        raise PolyccError(f"--relay {relay!r}: use p2p (the drones broadcast) or ground (this process relays)")
+    if relay == "ground":
+        return False
+    radios = {tuple(u.split("/")[3:5]) for u in uris if u.startswith("radio://") and len(u.split("/")) >= 5}
+    if len(radios) > 1:
+        chans = ", ".join(f"channel {c} at {r}" for c, r in sorted(radios))
+        raise PolyccError(f"--relay p2p: the drones are on different radio channels ({chans}) and would not hear "
+                          "each other's broadcasts; put them on one channel and data rate, or use --relay ground")
+    return True
+
+
 def _positions(sessions) -> np.ndarray | None:
     ps = [s.position() for s in sessions]
     return None if any(p is None for p in ps) else np.array(ps, float)
 
 
 def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bcast_hz, ctrl_hz, latency_ms, sense,
-         arrived, lock, on_update, clock) -> None:
+         arrived, lock, on_update, clock, p2p) -> None:
     n = len(sessions)
     t_wait = time.monotonic() + 5.0
     while (P := _positions(sessions)) is None:
@@ -231,6 +268,8 @@ def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bc
                           "place them further apart")
 
     def relay() -> None:
+        if p2p:  # the drones broadcast themselves
+            return
         now = time.monotonic()
         pts = [s.position() for s in sessions]  # takes the log lock itself
         ages = [(now - arrived[j]) * 1000.0 + latency_ms for j in range(n)]
@@ -322,7 +361,7 @@ def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bc
                         s.cf.param.set_value(f"polycc.goal{axis}", float(v))
 
 
-def _leave_all(flight: SwarmFlight, sessions, land: bool, clock) -> None:
+def _leave_all(flight: SwarmFlight, sessions, land: bool, clock, p2p: bool = False) -> None:
     """Disable every app (confirmed), then land every drone with the high-level commander. Best effort
     per drone: one whose link is gone lands by its own app's link-loss watchdog."""
     live = []
@@ -355,11 +394,21 @@ def _leave_all(flight: SwarmFlight, sessions, land: bool, clock) -> None:
                 break
         else:
             flight.notes.append("landing did not finish in time")
+    for lg in flight.logs:
+        flight.p2p.append({k.split(".")[1]: lg.latest.get(k) for k in P2P_LOGS} if p2p else {})
+    if p2p:  # the swarm is over: no more broadcasts, then drop what was heard (a P2P record never removes one)
+        for s in sessions:
+            try:
+                set_param(s.cf, "polycc.swarmId", 0)
+                set_param(s.cf, "polycc.swarmN", 0)
+            except Exception:
+                pass
+        time.sleep(0.2)  # broadcasts already in the air arrive first
     for i, s in enumerate(sessions):  # the ground is leaving: drop every relayed neighbour
         try:
             for j in range(len(sessions)):
                 if j != i:
-                    s.cf.appchannel.send_packet(pack_forget(j))
+                    s.cf.appchannel.send_packet(pack_forget(j + 1 if p2p else j))
         except Exception:
             pass
         s.stop_heartbeats()

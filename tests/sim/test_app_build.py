@@ -65,8 +65,8 @@ def test_arm_compile_against_shims_and_size(scene_dir, tmp_path):
     print("arm-none-eabi text/data/bss:", sizes)
     text, data, bss = sizes["polycc_app"]
     # The app glue (2 test polytopes inline) stays small; the parameter/log tables are data; the
-    # swarm's neighbour table (16 x 32 B + 4, docs/swarm.md) is the largest part of the bss.
-    assert text < 4096 and data < 1024 and bss < 512 + 516
+    # swarm's neighbour table (16 x 32 B + 4, docs/swarm.md) and the P2P ring (16 x 24 B) are most of the bss.
+    assert text < 5120 and data < 1024 and bss < 512 + 516 + 16 * 24
     assert sizes["polycc_kernel"][1:] == (0, 0)  # the kernel has no mutable state
     assert sizes["polycc_shield"][1:] == (0, 0) and sizes["polycc_shield"][0] < 4096  # nor the shield
     # the controller glue holds one plan (201 points: 4 kB) in RAM, nothing else of size

@@ -16,10 +16,11 @@ from polycc.onboard.app import STATUS_NAMES, app_rate_hz
 from polycc.sim.app_ffi import SRC, AppSim
 
 LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2),
-            ("nNbr", 1)]
+            ("nNbr", 1), ("p2pRx", 2), ("p2pTx", 2), ("p2pDrop", 2)]
 # PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09
 PARAMS = [("enable", 0x08), ("goalX", 0x06), ("goalY", 0x06), ("goalZ", 0x06), ("vmax", 0x06), ("beta", 0x06),
-          ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09), ("swarmV", 0x06)]
+          ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09), ("swarmV", 0x06), ("swarmN", 0x08),
+          ("swarmId", 0x08), ("p2pMs", 0x09), ("p2pAgeMs", 0x09)]
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,7 @@ def test_log_and_param_tocs(fresh):
     assert [(e.name, e.type) for e in logs] == LOG_VARS
     pars = [e for e in fresh.param_toc() if e.group == "polycc"]
     assert [(e.name, e.type) for e in pars] == PARAMS
-    assert [e.size for e in pars] == [1, 4, 4, 4, 4, 4, 4, 4, 2, 4]
+    assert [e.size for e in pars] == [1, 4, 4, 4, 4, 4, 4, 4, 2, 4, 1, 1, 2, 2]
     # The simulated estimate is in the log TOC like the firmware's core variables (LOG_CORE = 0x20).
     est = {e.name: e for e in fresh.log_toc() if e.group == "stateEstimate"}
     assert {"x", "y", "z"} <= set(est) and est["x"].type == 0x20 | 7
@@ -71,6 +72,11 @@ def test_defaults_and_status_codes_match_header(fresh):
     assert sorted(codes) == sorted(STATUS_NAMES)
     for name in ("DEFAULT_RATE_HZ", "MIN_RATE_HZ", "CPU_HZ", "CPU_SHARE_PERCENT"):
         assert int(d["POLYCC_APP_" + name].split()[0].rstrip("u")) == getattr(onboard_app, name), name
+    for name in ("P2P_PORT", "P2P_RING"):
+        assert int(d["POLYCC_APP_" + name].rstrip("u"), 0) == getattr(onboard_app, name), name
+    assert fresh.get_param("polycc", "p2pMs") == int(d["POLYCC_APP_DEFAULT_P2P_MS"].rstrip("u"))
+    assert fresh.get_param("polycc", "p2pAgeMs") == int(d["POLYCC_APP_DEFAULT_P2P_AGE_MS"].rstrip("u"))
+    assert fresh.get_param("polycc", "swarmId") == 0 and fresh.get_param("polycc", "swarmN") == 0
     assert fresh.kappa == 100.0 and fresh.n_polys == 2
 
 

@@ -1,7 +1,8 @@
 """`polycc swarm-sim --firmware`: four real Crazyflie firmwares (CrazySim SITL instances, each with the app
 and the demo-arena header) flown as a swarm by real cflib with the same ground code as `polycc swarm-fly`
-(issue 19's CI scenario): HL takeoff of all four, neighbours relayed over the app channel, coverage
-controllers, apps disabled, HL landing. It fails on any collision (drone-drone on the instances' truth,
+(issue 19's CI scenario): HL takeoff of all four, neighbours over the firmwares' own P2P broadcasts (and,
+with two drones, relayed by the ground over the app channel), coverage controllers, apps disabled, HL
+landing. It fails on any collision (drone-drone on the instances' truth,
 drone-obstacle exact to the splat ellipsoids), on a missed peak and when a drone does not land.
 
 This is the test that found the 31-byte app-channel reply that crashed the firmware at the first
@@ -24,7 +25,11 @@ pytestmark = pytest.mark.skipif(shutil.which("cmake") is None and not os.environ
 
 
 @pytest.mark.slow
-def test_four_real_firmware_drones_cover_and_land(tmp_path, capsys):
+@pytest.mark.parametrize("relay,drones", [("p2p", 4), ("ground", 2)])
+def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones):
+    """p2p (the default, issue 19's CI scenario): the four firmwares broadcast to each other through the SITL
+    air (real radiolink.h calls, real CRTP RX task), the ground sends heartbeats only; ground: the relay
+    over cflib's app channel."""
     tree = sitl_tarball()
     if not tree.exists():
         if os.environ.get("CI"):
@@ -34,13 +39,22 @@ def test_four_real_firmware_drones_cover_and_land(tmp_path, capsys):
     out = tmp_path / "b"
     assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(out)]) == 0
     capsys.readouterr()
-    rc = main(["swarm-sim", str(out), "--drones", "4", "--random-targets", "1", "--seed", "1", "--t-max", "30",
-               "--takeoff", "0.7", "--firmware", str(tree)])
+    rc = main(["swarm-sim", str(out), "--drones", str(drones), "--random-targets", "1", "--seed", "1", "--t-max", "30",
+               "--takeoff", "0.7", "--firmware", str(tree)] + (["--relay", relay] if relay != "p2p" else []))
     text = capsys.readouterr().out
     s = json.loads((out / "swarm.json").read_text())
     assert rc == 0, text
     fw = s["firmware"]
     assert fw["outcome"] == "covered" and fw["landed"], text
     assert s["collisions"] == 0 and s["min_inter_drone_m"] > 2 * s["radius"], text
-    assert s["coverage_ratio"] == 1.0 and fw["relayed"] > 0
+    assert s["coverage_ratio"] == 1.0
+    assert fw["relay"] == relay
+    if relay == "p2p":
+        assert fw["relayed"] == 0  # the ground relayed nothing: every neighbour came over the air
+        for d in fw["p2p"]:  # every firmware heard all others, and refused nothing
+            assert d["nNbr"] == drones - 1 and d["p2pRx"] > 50 * (drones - 1) and d["p2pDrop"] == 0, fw["p2p"]
+            assert d["p2pTx"] > 50
+        assert fw["air"]["delivered"] == (drones - 1) * fw["air"]["packets"] > 0
+    else:
+        assert fw["relayed"] > 0
     assert (out / "coverage.png").stat().st_size > 10_000

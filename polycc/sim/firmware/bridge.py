@@ -12,6 +12,14 @@ One process, one event loop (``select``), three UDP sockets:
   driver.  Relayed unconditionally (cflib 0.1.34 never sends the ``0xF3`` that CrazySim's
   plugin waits for, ``crazysim_plugin.cpp:250``); the client is the sender of the latest
   datagram, so a reconnecting cflib is followed.
+* **P2P air socket** (with ``--air HOST:PORT``; ephemeral): the radio's peer-to-peer broadcast between
+  instances.  The SITL build's ``radiolinkSendP2PPacketBroadcast`` (``support/polycc_sitl_fixes.c``,
+  fix ``p2p``) sends each P2P packet as a CRTP packet on port :data:`P2P_CRTP_PORT`; the bridge takes it
+  out of the firmware's traffic (cflib never sees it) and sends it to the air hub
+  (:class:`polycc.sim.firmware.air.P2PAir`), which hands it to every other instance's bridge; a packet
+  from the air goes into the firmware through the same paced FIFO as cflib's packets and reaches the
+  app's ``p2pRegisterCB`` callback.  A cut cflib link (``cut``) does not cut P2P (the nRF's broadcast
+  needs no Crazyradio).
 * **control socket** (ephemeral, announced on stdout), one UDP datagram per command, a JSON reply:
   ``state`` (the truth: simulated time ``t`` s, ``pos`` m, ``vel`` m/s, ``q``, ``pwm``, ``motors_on``,
   ``on_ground``, impacts), ``stats``, ``flush`` (write the trajectory rows so far), ``cut S`` (drop the
@@ -101,6 +109,8 @@ TICK_POLL_S = 0.0002        # bridge clock: poll period while waiting for cf2 to
 MAX_LAG_S = 0.05            # bridge clock: this far behind the rtf_max schedule, give up catching up
 MOTOR_SILENCE_S = 0.5       # no motor packet for this long after they started: report a stall
 LOOKBACK_S = 0.001          # packets sent this long before a motor packet may not have been read
+P2P_CRTP_PORT = 0x0B        # support/polycc_sitl_fixes.c POLYCC_SITL_P2P_CRTP_PORT: a P2P packet as CRTP
+AIR_HELLO = b"\x00"         # bridge -> air hub: register this socket (a P2P packet is >= 2 bytes)
 
 
 @dataclass
@@ -129,6 +139,7 @@ class BridgeConfig:
     acc_noise_g: float = 0.0
     tick_fd: int | None = None      # bridge clock: write end of cf2's tick pipe (sim.py sets it up)
     rtf_max: float = 1.0            # bridge clock: at most this many simulated seconds per second
+    air: tuple | None = None        # (host, port) of the P2P air hub (polycc.sim.firmware.air), or None
 
 
 class Bridge:
@@ -141,6 +152,10 @@ class Bridge:
         self.fw = self._udp(cfg.host, cfg.fw_port, "firmware")
         self.cf = self._udp(cfg.cflib_host, cfg.cflib_port, "cflib")
         self.ctl = self._udp("127.0.0.1", 0, "control")
+        self.air = None
+        if cfg.air is not None:
+            self.air = self._udp("127.0.0.1", 0, "P2P air")
+            self.air.sendto(AIR_HELLO, tuple(cfg.air))
         self.cut_until = -1.0                 # simulated time until which the cflib relay is cut
         self.fw_addr = None
         self.cf_addr = None
@@ -270,6 +285,16 @@ class Bridge:
             self.calibrated = True
             self.emit("calibrated", sim_t=round(self.quad.t, 3))
             return
+        if len(data) >= 2 and (data[0] >> 4) == P2P_CRTP_PORT:  # a P2P broadcast: into the air, never to cflib
+            if self.air is None:
+                self.stats["p2p_no_air"] += 1
+                return
+            try:
+                self.air.sendto(data, tuple(self.cfg.air))
+                self.stats["p2p_tx"] += 1
+            except OSError:
+                self.stats["p2p_send_err"] += 1
+            return
         if self.arq is not None and not self.arq.reply(data, self._arq_clock(now)):
             return                              # duplicate answer to a retransmitted request
         if self.link_cut:
@@ -281,6 +306,20 @@ class Bridge:
                 self.cf.sendto(data, self.cf_addr)
             except OSError:
                 self.stats["cflib_send_err"] += 1
+
+    def _handle_air(self, data: bytes, now: float):
+        """Another instance's P2P broadcast: into this firmware, behind cflib's packets (the same pacing)."""
+        if len(data) < 2 or (data[0] >> 4) != P2P_CRTP_PORT:
+            self.stats["p2p_bad"] += 1
+            return
+        if self.fw_addr is None or not self.calibrated:  # the app is not running yet: the radio hears nothing
+            self.stats["p2p_before_calibration"] += 1
+            return
+        self.stats["p2p_rx"] += 1
+        if self.cfg.mode == "naive":
+            self._send_fw(data, now)
+            return
+        self.pending.append((now, data))
 
     # ------------------------------------------------------------------ cflib side
     def _handle_cf(self, data: bytes, addr, now: float):
@@ -385,7 +424,7 @@ class Bridge:
         self.emit("listening", fw_port=self.fw.getsockname()[1], cflib_port=self.cf.getsockname()[1],
                   control_port=self.ctl.getsockname()[1], mode=cfg.mode,
                   clock="bridge" if self.tick_fd is not None else "wall", pid=os.getpid())
-        socks = [self.fw, self.cf, self.ctl]
+        socks = [self.fw, self.cf, self.ctl] + ([self.air] if self.air is not None else [])
         self.paced = cfg.mode == "paced"
         self.pose_every = max(1, round(1000.0 / cfg.pose_hz))
         self.rec_every = max(1, round(1000.0 / cfg.record_hz))
@@ -430,6 +469,8 @@ class Bridge:
                         self._handle_fw(data, addr, now)
                     elif s is self.cf:
                         self._handle_cf(data, addr, now)
+                    elif s is self.air:
+                        self._handle_air(data, now)
                     else:
                         self._control(data, addr)
             now = time.monotonic()
@@ -569,8 +610,9 @@ class Bridge:
             self.csv.close()
         if self.trace:
             self.trace.close()
-        for s in (self.fw, self.cf, self.ctl):
-            s.close()
+        for s in (self.fw, self.cf, self.ctl, self.air):
+            if s is not None:
+                s.close()
 
 
 def _triple(s: str):
@@ -578,6 +620,11 @@ def _triple(s: str):
     if len(v) != 3:
         raise argparse.ArgumentTypeError("expected x,y,z")
     return v
+
+
+def _hostport(s: str):
+    host, _, port = s.rpartition(":")
+    return host or "127.0.0.1", int(port)
 
 
 def main(argv=None) -> int:
@@ -599,13 +646,14 @@ def main(argv=None) -> int:
     ap.add_argument("--trace", help="debug: write every datagram to this file")
     ap.add_argument("--tick-fd", type=int, help="bridge clock: write end of cf2's tick pipe (polycc.sim.firmware.sitl)")
     ap.add_argument("--rtf-max", type=float, default=1.0, help="bridge clock: max real-time factor")
+    ap.add_argument("--air", type=_hostport, help="HOST:PORT of the P2P air hub (polycc.sim.firmware.air)")
     a = ap.parse_args(argv)
     cfg = BridgeConfig(fw_port=a.fw_port, cflib_port=a.cflib_port, cflib_host=a.cflib_host, start=a.start,
                        start_yaw=a.yaw,
                        pose_hz=a.pose_hz, trajectory_csv=a.trajectory, mode=a.mode, slot_extra=a.slot_extra,
                        hold_s=a.hold_ms / 1e3, hold_until_calibrated=not a.no_hold, arq=not a.no_arq,
                        handshake_timeout_s=a.handshake_timeout, stats_period_s=a.stats_period,
-                       trace_path=a.trace, tick_fd=a.tick_fd, rtf_max=a.rtf_max)
+                       trace_path=a.trace, tick_fd=a.tick_fd, rtf_max=a.rtf_max, air=a.air)
     b = Bridge(cfg)
 
     def stop(signum, frame):

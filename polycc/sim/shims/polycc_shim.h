@@ -116,6 +116,13 @@ size_t shim_appchannel_pop(void *buffer, size_t max_length);
 /* App-channel sends longer than the CRTP payload (30 bytes): the firmware ASSERTs (motors off, reset). */
 int shim_crtp_asserts(void);
 
+/* P2P radio (radiolink.h): the app's broadcasts, oldest first, as raw bytes (port, then data; 0 when none),
+ * and a packet another drone broadcast (raw: port, then data) handed to the app's P2P callback (-1: no
+ * callback registered or a bad length); broadcasts lost to a full queue. */
+size_t shim_p2p_pop(void *buffer, size_t max_length);
+int shim_p2p_deliver(const void *raw, size_t length, int rssi);
+int shim_p2p_lost(void);
+
 /* Attitude and thrust of the simulated vehicle (log stateEstimate.roll/pitch/yaw, stabilizer.*). */
 void shim_set_attitude(float roll_deg, float pitch_deg, float yaw_deg, float thrust);
 /* The PID position controller's z integral output (log posCtl.Zi, m/s), and its gains as the params

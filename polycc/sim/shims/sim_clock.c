@@ -19,6 +19,7 @@ void shim_reset(void)
     shimDebugReset();
     shimAppchannelReset();
     shimPlatformReset();
+    shimRadiolinkReset();
 }
 
 void shim_set_tick(uint32_t t)

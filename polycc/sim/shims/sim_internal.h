@@ -6,5 +6,6 @@ void shimCommanderReset(void);
 void shimDebugReset(void);
 void shimAppchannelReset(void);
 void shimPlatformReset(void);
+void shimRadiolinkReset(void);
 void shimLogSetYaw(float roll_deg, float pitch_deg, float yaw_deg);
 void shimAssertFailed(void); /* a firmware ASSERT: the motors stop for good, as assertFail() does */

@@ -98,3 +98,62 @@ PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcUSD, &polycc_sitl_no_deck)
 PARAM_ADD_CORE(PARAM_UINT8 | PARAM_RONLY, bcBuzzer, &polycc_sitl_no_deck)
 PARAM_GROUP_STOP(deck)
 #endif
+
+/*
+ * p2p
+ *   The fork's sitl_make/CMakeLists.txt leaves src/hal/src/radiolink.c out (the SITL has no nRF: its
+ *   only link is socketlink.c's UDP socket), so an app calling the radio's peer-to-peer broadcast
+ *   (radiolink.h: p2pRegisterCB, radiolinkSendP2PPacketBroadcast) does not link.  On a real Crazyflie
+ *   the nRF51 broadcasts a P2P packet (port, then up to P2P_MAX_DATA_SIZE bytes) to every drone on the
+ *   same radio channel and hands each one it hears to the registered callback, from the syslink task
+ *   (radiolink.c: radiolinkSyslinkDispatch, SYSLINK_RADIO_P2P_BROADCAST).
+ *   build.py compiles this file with -DPOLYCC_SITL_P2P: a broadcast leaves as one CRTP packet on port
+ *   POLYCC_SITL_P2P_CRTP_PORT (unused by the firmware; data = the P2P packet's raw bytes: port, data)
+ *   through the socket link, where polycc's bridge (polycc/sim/firmware/bridge.py --air) hands it to
+ *   every other instance; such a packet coming in reaches the callback from the CRTP RX task.  The
+ *   CRTP payload is 30 bytes, so a P2P packet with more than 29 data bytes is refused (false).
+ */
+#ifdef POLYCC_SITL_P2P
+#include <stdbool.h>
+#include <string.h>
+
+#include "crtp.h"
+#include "radiolink.h"
+
+#define POLYCC_SITL_P2P_CRTP_PORT 0x0B
+
+static volatile P2PCallback polycc_sitl_p2p_cb;
+
+static void polycc_sitl_p2p_rx(CRTPPacket *pk)
+{
+    P2PPacket p;
+    P2PCallback cb = polycc_sitl_p2p_cb;
+    if (pk->size < 1u || cb == 0) {
+        return;
+    }
+    memset(&p, 0, sizeof p);
+    memcpy(p.raw, pk->data, pk->size);
+    p.size = (uint8_t)(pk->size - 1u);
+    p.rssi = 40u; /* a strong signal (-40 dBm): the SITL air loses nothing */
+    cb(&p);
+}
+
+void p2pRegisterCB(P2PCallback cb)
+{
+    polycc_sitl_p2p_cb = cb;
+    crtpRegisterPortCB(POLYCC_SITL_P2P_CRTP_PORT, polycc_sitl_p2p_rx);
+}
+
+bool radiolinkSendP2PPacketBroadcast(P2PPacket *p)
+{
+    CRTPPacket pk;
+    if (p->size + 1u > CRTP_MAX_DATA_SIZE) {
+        return false;
+    }
+    memset(&pk, 0, sizeof pk);
+    pk.header = CRTP_HEADER(POLYCC_SITL_P2P_CRTP_PORT, 0);
+    pk.size = (uint8_t)(p->size + 1u);
+    memcpy(pk.data, p->raw, pk.size);
+    return crtpSendPacket(&pk) == pdTRUE;
+}
+#endif
