@@ -96,14 +96,14 @@ class FirmwareWorld(_World):
     poll_s = 0.02
     connect_retry = True  # flight_scenarios._connect: one fresh cflib session after a stalled connect
 
-    def __init__(self, header, start, tree=None, run_dir=None, rtf_max: float = 1.0, cf2=None):
+    def __init__(self, header, start, tree=None, run_dir=None, rtf_max: float = 1.0, cf2=None, bridge_args=None):
         from polycc.sim.firmware.build import build_cf2
         from polycc.sim.firmware.sitl import FirmwareSitl
         from polycc.testing.files import sitl_tarball
 
         self.build = cf2 if cf2 is not None else build_cf2(tree if tree is not None else sitl_tarball(), header)
         self.sitl = FirmwareSitl(self.build, start=(float(start[0]), float(start[1]), 0.0), run_dir=run_dir,
-                                 rtf_max=rtf_max)
+                                 rtf_max=rtf_max, bridge_args=bridge_args)
         self.toc_cache = None  # cflib's TOC cache off: the stalled connects seen had it on (sim.firmware.flights)
 
     @property

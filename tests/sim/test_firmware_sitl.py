@@ -493,3 +493,76 @@ def test_sim_device_firmware_serves_cflib_and_cfclient_and_stops_on_ctrl_c(arena
     assert "ports freed" in rest
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", port))  # freed
+
+
+@pytest.mark.slow
+def test_p2p_radio_on_the_real_firmware(arena):
+    """Differential test of the host radio shim (polycc/sim/shims/sim_radiolink.c, which
+    tests/sim/test_swarm_p2p.py drives) against the real firmware's P2P path (the SITL build's radiolink.h
+    calls, the real CRTP RX task), through the air hub: with polycc.swarmId = 5 the firmware broadcasts the
+    same 18-byte record the shim does (id, stated age, radius in mm exactly; position = its estimate, within
+    5 cm of the truth on the floor) every p2pMs; a record heard enters the table (nNbr, p2pRx); the own id
+    and "forget" are refused and counted (p2pDrop) exactly as on the host; another port is ignored."""
+    import socket
+    import struct
+    import time
+
+    from cflib.crazyflie.log import LogConfig
+
+    from polycc.link.cflib_tools import close_without_stop, set_param
+    from polycc.onboard.app import NBR_FORMAT, NBR_MAGIC, P2P_PORT, pack_forget, pack_neighbour
+    from polycc.sim.firmware.air import P2PAir
+    from polycc.sim.firmware.bridge import AIR_HELLO, P2P_CRTP_PORT
+    from polycc.testing.worlds import FirmwareWorld
+
+    hdr = bytes([P2P_CRTP_PORT << 4])
+    with P2PAir() as air, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as ear:
+        ear.bind(("127.0.0.1", 0))
+        ear.settimeout(10.0)
+        ear.sendto(AIR_HELLO, air.address)
+        with FirmwareWorld(arena["dir"] / "polytopes.h", arena["start"], cf2=arena["build"],
+                           bridge_args=["--air", air.arg]) as w:
+            scf = _connect(w)
+            try:
+                latest: dict = {}
+                lc = LogConfig(name="p2p", period_in_ms=50)
+                for n in ("polycc.nNbr", "polycc.p2pRx", "polycc.p2pTx", "polycc.p2pDrop"):
+                    lc.add_variable(n, scf.cf.log.toc.get_element_by_complete_name(n).ctype)
+                lc.data_received_cb.add_callback(lambda ts, data, conf: latest.update(data))
+                scf.cf.log.add_config(lc)
+                lc.start()
+                for name, v in (("radius", 0.1), ("p2pAgeMs", 20), ("p2pMs", 50), ("swarmId", 5)):
+                    set_param(scf.cf, f"polycc.{name}", v)
+                heard, t_end = [], time.monotonic() + 60.0
+                while len(heard) < 10 and time.monotonic() < t_end:
+                    data, _ = ear.recvfrom(64)
+                    heard.append(data)
+                truth = w.truth()[0]
+                assert len(heard) == 10
+                for d in heard:
+                    assert d[:2] == hdr + bytes([P2P_PORT]) and len(d) == 20
+                    magic, nid, x, y, z, age, rmm = struct.unpack(NBR_FORMAT, d[2:])
+                    assert (magic, nid, age, rmm) == (NBR_MAGIC, 5, 20, 100)
+                    assert np.linalg.norm(np.array([x, y, z]) - truth) < 0.05
+                    assert d[2:] == pack_neighbour(5, [x, y, z], 20, 0.1)  # byte for byte the host's record
+
+                def hear(rec: bytes, port: int = P2P_PORT) -> None:
+                    ear.sendto(hdr + bytes([port]) + rec, air.address)
+
+                def logs_reach(**want) -> bool:
+                    return w.wait_until(lambda: all(latest.get(f"polycc.{k}") == v for k, v in want.items()), 10.0)
+
+                nb = np.asarray(truth) + np.array([1.0, 0.0, 0.5])
+                hear(pack_neighbour(9, nb, 10, 0.1))
+                assert logs_reach(nNbr=1, p2pRx=1, p2pDrop=0), latest
+                hear(pack_neighbour(5, nb, 10, 0.1))  # own id
+                hear(pack_forget(9))  # a P2P record never removes a neighbour
+                hear(pack_neighbour(10, nb, 10, 0.1), port=P2P_PORT + 1)  # another app's P2P port
+                assert logs_reach(nNbr=1, p2pRx=1, p2pDrop=2), latest
+                w.sleep(0.5)  # the packet on the other port has long been handled: still not counted
+                assert (latest["polycc.nNbr"], latest["polycc.p2pRx"], latest["polycc.p2pDrop"]) == (1, 1, 2)
+                assert latest["polycc.p2pTx"] >= 10
+                lc.stop()
+            finally:
+                close_without_stop(scf)
+        assert air.stats["from_unknown"] == 0
