@@ -20,7 +20,19 @@ here; the shield's cost on board is its certified cycle budget (printed, from th
         [--psi-caps 0,0.6]   (shield cells on min(psi, cap): a clearance-capped barrier, issue 18)
         [--gains 4:4,2:1]    (shield cells per ECBF gains k1:k0, polyccShield.k1/k0)
 
-Writes bench/results/shield.json.  The real-firmware SITL columns (issue 13) are not here yet.
+Real firmware (``--firmware FWDIR``, the CrazySim SITL tree or tarball): the same two modes on the first
+``--fw-pairs`` pairs per speed, each flight a fresh SITL instance flown by real cflib
+(:mod:`polycc.sim.firmware.flights`: HL takeoff to the start, app enabled, HL landing): ``app`` is the
+shipped cf2 (PID controller), ``shield`` a cf2 with the braking term compiled out, the out-of-tree
+controller (stabilizer.controller = 5 in the fork) and polyccShield.enable = 1 from the start height. Model
+"firmware" rows: collisions and clearance on the bridge's 100 Hz truth, jerk from its velocity, the
+shield's logged counters. The rate gap needs the app's per-tick commands, which the firmware does not
+log: "-". Next to them, model "quadrotor" rows on the same pairs (fast sim) for the agreement.
+
+    python bench/bench_shield.py --firmware ../shared/firmware/crazyflie-firmware-sitl-6a4d2d0.tar.xz \
+        --fw-pairs 5 [--speeds ...]
+
+Writes bench/results/shield.json (fast) and bench/results/shield_firmware.json (--firmware).
 """
 
 from __future__ import annotations
@@ -74,6 +86,68 @@ def fly_cell(job: dict) -> dict:
     }
 
 
+def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print) -> list[dict]:
+    """The real-firmware rows (module docstring), flown one after the other (each SITL is lock-stepped at up
+    to real time: parallel instances only slow each other)."""
+    from bench_sim import arena
+
+    from polycc.sim.firmware.build import build_cf2
+    from polycc.sim.firmware.flights import FirmwareSimulator
+    from polycc.sim.sitl import FlightConfig, Simulator
+
+    ell = arena("demo")
+    ref = Simulator(header)
+    builds = {"app": build_cf2(tree, header, log=say),
+              "shield": build_cf2(tree, header, extra_cflags=["-DPOLYCC_APP_BRAKE_ACC=0.0f"], log=say)}
+    rows = []
+    for speed in speeds:
+        for mode in ("app", "shield"):
+            t0 = time.perf_counter()
+            shield = mode == "shield"
+            fw = FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=builds[mode])
+            cfg = FlightConfig(vmax=speed, radius=0.2 if shield else RADIUS, clearance_radius=RADIUS, shield=shield,
+                               shield_radius=RADIUS)
+            trials = []
+            for k, (s0, g) in enumerate(pairs):
+                t = fw.fly(s0, g, cfg)
+                trials.append(t)
+                say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)}: {t.outcome}, clearance "
+                    f"{t.min_clearance_m:+.3f} m, {t.time_s:.1f} s")
+            ok = [t for t in trials if t.success]
+            jerk = np.concatenate([t.jerk for t in trials if t.jerk is not None and len(t.jerk)] or [np.zeros(1)])
+            sh = [t.shield for t in trials if t.shield]
+            per = (lambda k: float(np.mean([x[k] for x in sh]))) if sh else (lambda k: 0.0)
+            rows.append({
+                "dynamics": "firmware", "speed": float(speed), "mode": mode, "psi_cap": 0.0, "gains": None,
+                "flights": len(trials), "goal": len(ok), "collisions": int(sum(t.collisions > 0 for t in trials)),
+                "min_clearance_m": float(min(t.min_clearance_m for t in trials)),
+                "gap_p1": None, "gap_p50": None, "gap_p99": None,
+                "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
+                "time_to_goal_s": float(np.mean([t.time_s for t in ok])) if ok else float("nan"),
+                "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
+                "backups_per_flight": per("backups"), "eval_caps_per_flight": None,
+                "outcomes": {o: sum(t.outcome == o for t in trials) for o in ("goal", "stuck", "timeout")},
+                "landed": sum(bool(t.extra.get("landed")) for t in trials),
+                "sitl_reruns": sum(int(t.extra.get("sitl_reruns", 0)) for t in trials),
+                "rtf_mean": float(np.mean([t.extra.get("rtf") or 0.0 for t in trials])),
+                "wall_s": time.perf_counter() - t0,
+            })
+    return rows
+
+
+def _table_rows(rows):
+    f = lambda v: "-" if v is None else v  # noqa: E731
+    return [[r["dynamics"], r["speed"], r["mode"], r["psi_cap"],
+             "-" if r["gains"] is None else "{:g}:{:g}".format(*r["gains"]), f"{r['goal']}/{r['flights']}",
+             r["collisions"], r["min_clearance_m"], f(r["gap_p1"]), f(r["gap_p50"]), f(r["gap_p99"]), r["jerk_rms"],
+             r["jerk_p99"], r["time_to_goal_s"], r["infeasible_per_flight"], r["backups_per_flight"],
+             r["decisions_per_flight"]] for r in rows]
+
+
+HEAD = ["model", "v m/s", "mode", "cap m", "k1:k0", "goal", "coll.", "min clr m", "gap p1", "gap p50", "gap p99",
+        "jerk rms", "jerk p99", "t goal s", "infeas./fl", "backup/fl", "dec./fl"]
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=100, help="random start/goal pairs per speed (default 100)")
@@ -84,6 +158,8 @@ def main() -> int:
     ap.add_argument("--psi-caps", default="0", help="shield cells per psi cap, m (0: off; e.g. 0,0.6)")
     ap.add_argument("--gains", default="4:4", help="shield cells per ECBF gains k1:k0 (1/s : 1/s^2; default 4:4, "
                                                    "the app's; e.g. 4:4,2:1)")
+    ap.add_argument("--firmware", metavar="FWDIR", help="also fly the real firmware (CrazySim SITL tree or tarball)")
+    ap.add_argument("--fw-pairs", type=int, default=5, help="with --firmware: pairs per speed and mode (default 5)")
     args = ap.parse_args()
     from bench_sim import pairs_for, write_header
 
@@ -98,6 +174,8 @@ def main() -> int:
               "plan_worst_cycles": int(lib.polycc_controller_plan_worst_cycles()),
               "period_share_cycles": 168_000 * 10 * int(lib.POLYCC_SHIELD_CPU_SHARE_PERCENT) // 100}
     print(f"shield plan budget: {budget}")
+    if args.firmware:
+        return firmware_main(args, header, pairs, budget)
     caps = [float(c) for c in args.psi_caps.split(",")]
     gains = [tuple(float(x) for x in g.split(":")) for g in args.gains.split(",")]
     jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m, "psi_cap": c,
@@ -115,16 +193,28 @@ def main() -> int:
                                   "wall_s": time.perf_counter() - t0})
             print(f"cell {len(rows)}/{len(jobs)} done", flush=True)
     rows = [r for _, r in sorted(rows, key=lambda t: t[0])]
-    head = ["model", "v m/s", "mode", "cap m", "k1:k0", "goal", "coll.", "min clr m", "gap p1", "gap p50", "gap p99",
-            "jerk rms", "jerk p99", "t goal s", "infeas./fl", "backup/fl", "dec./fl"]
-    table = [[r["dynamics"], r["speed"], r["mode"], r["psi_cap"],
-              "-" if r["gains"] is None else "{:g}:{:g}".format(*r["gains"]), f"{r['goal']}/{r['flights']}",
-              r["collisions"],
-              r["min_clearance_m"], r["gap_p1"], r["gap_p50"], r["gap_p99"], r["jerk_rms"], r["jerk_p99"],
-              r["time_to_goal_s"], r["infeasible_per_flight"], r["backups_per_flight"], r["decisions_per_flight"]]
-             for r in rows]
-    print_table(f"Shield vs today's app, demo arena n={N_POLYS}, {args.pairs} pairs per speed (fast SITL)", head, table)
+    print_table(f"Shield vs today's app, demo arena n={N_POLYS}, {args.pairs} pairs per speed (fast SITL)", HEAD,
+                _table_rows(rows))
     write_json("shield", {"pairs": args.pairs, "budget": budget, "rows": rows, "wall_s": time.perf_counter() - t0})
+    return 0
+
+
+def firmware_main(args, header: Path, pairs, budget) -> int:
+    """--firmware: the real-firmware rows and, on the same pairs, the fast quadrotor rows."""
+    t0 = time.perf_counter()
+    speeds = [float(v) for v in args.speeds.split(",")]
+    sub = pairs[: args.fw_pairs]
+    rows = []
+    for speed in speeds:  # the fast sim on the same pairs, side by side
+        for mode in ("app", "shield"):
+            rows.append(fly_cell({"header": str(header), "pairs": sub, "speed": speed, "dynamics": "quadrotor",
+                                  "mode": mode, "psi_cap": 0.0, "gains": None}))
+    rows += fly_firmware_cells(args.firmware, header, sub, speeds)
+    rows.sort(key=lambda r: (r["speed"], r["mode"], r["dynamics"]))
+    print_table(f"Shield vs today's app on the REAL firmware (SITL) and the fast quadrotor, demo arena n={N_POLYS}, "
+                f"{len(sub)} pairs per speed", HEAD, _table_rows(rows))
+    write_json("shield_firmware", {"pairs": len(sub), "budget": budget, "rows": rows,
+                                   "wall_s": time.perf_counter() - t0})
     return 0
 
 

@@ -415,6 +415,26 @@ def test_polycc_sim_firmware_trials(arena, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_polycc_sim_firmware_with_the_shield(arena, tmp_path, capsys):
+    """Regression: `polycc sim --firmware --shield` flew the real firmware without the shield (the firmware
+    trials ignored FlightConfig.shield) and then stopped with a TypeError traceback summing the shield
+    counters it never read. Now the shield flies (out-of-tree controller, polyccShield.enable from the start
+    height) and its logged counters are in the summary."""
+    import json
+
+    from polycc.cli import main
+
+    out = tmp_path / "b"
+    shutil.copytree(arena["dir"], out)
+    assert main(["sim", str(out), "--scene", str(arena["scene"]), "--firmware", str(arena["tree"]), "--shield",
+                 "--vmax", "1.0"]) == 0
+    text = capsys.readouterr().out
+    assert "collisions: 0" in text and "success 1/1" in text, text[-2000:]
+    sh = json.loads((out / "sim.json").read_text())["shield"]
+    assert sh["decisions"] > 100 and sh["manual"] == 0, sh  # 100 Hz decisions over the flight
+
+
+@pytest.mark.slow
 def test_a_hung_firmware_is_reported_as_a_stall_with_its_threads(arena, tmp_path, monkeypatch):
     """A cf2 that stops taking ticks (here frozen with SIGSTOP, as the one CI hang looked from outside)
     raises SitlStall within STALL_S wall seconds, naming cf2's thread states, and leaves stall.txt."""

@@ -42,6 +42,11 @@ LAND_SPEED = 0.3     # m/s
 SAMPLE_S = 0.02      # polling period of the truth, wall seconds
 LOG_VARS = (("stateEstimate.x", "float"), ("stateEstimate.y", "float"), ("stateEstimate.z", "float"),
             ("polycc.status", "uint8_t"), ("polycc.psi", "float"))
+# cfg.shield: the shield's counters the firmware logs (group polyccShield, polycc_controller.c), and the
+# out-of-tree controller's number in the SITL fork's ControllerType enum (src/modules/interface/controller/
+# controller.h: AutoSelect, PID, Mellinger, INDI, Brescianini, Oot; upstream has Lee before Oot: 6)
+SHIELD_LOGS = ("decisions", "backups", "infeasible", "manual", "landings", "escapes")
+SITL_OOT_CONTROLLER = 5
 
 
 class FirmwareSimulator:
@@ -117,6 +122,40 @@ class FirmwareSimulator:
         return trial
 
     # ------------------------------------------------------------------ one flight
+    def _start_shield(self, cf, cfg: FlightConfig):
+        """cfg.shield: the out-of-tree controller and the shield's params as the fast simulator sets them, and
+        a log block of its counters; returns (log config, lock, latest values). The shield is switched on at
+        the start height, before the app (the fast simulator starts there, hovering): from the floor, where
+        the vehicle's ball touches the floor splats (psi <= 0), it would hold the vehicle on the floor."""
+        from cflib.crazyflie.log import LogConfig
+
+        if cf.param.toc.get_element_by_complete_name("polyccShield.enable") is None:
+            raise PolyccError("--shield: this cf2 has no shield (param polyccShield.enable); build it with the "
+                              "polycc app's app-config (CONFIG_CONTROLLER_OOT=y)")
+        r_sh = cfg.shield_radius if cfg.shield_radius is not None else (
+            cfg.clearance_radius if cfg.clearance_radius is not None else cfg.radius)
+        set_param(cf, "polyccShield.radius", r_sh)
+        if cfg.shield_tube is not None:
+            set_param(cf, "polyccShield.tube", cfg.shield_tube)
+        set_param(cf, "polyccShield.psicap", cfg.shield_psi_cap)
+        if cfg.shield_gains is not None:
+            set_param(cf, "polyccShield.k1", float(cfg.shield_gains[0]))
+            set_param(cf, "polyccShield.k0", float(cfg.shield_gains[1]))
+        set_param(cf, "stabilizer.controller", SITL_OOT_CONTROLLER)  # polyccShield.enable after the takeoff
+        lock, latest = threading.Lock(), {}
+
+        def on_log(ts, data, conf):
+            with lock:
+                latest.update(data)
+
+        lc = LogConfig(name="polyccshield", period_in_ms=100)
+        for k in SHIELD_LOGS:
+            lc.add_variable(f"polyccShield.{k}", "uint32_t")
+        lc.data_received_cb.add_callback(on_log)
+        cf.log.add_config(lc)
+        lc.start()
+        return lc, lock, latest
+
     def _flight(self, sitl: FirmwareSitl, cf, start, goal, targets, cfg: FlightConfig):
         from cflib.crazyflie.log import LogConfig
 
@@ -139,6 +178,7 @@ class FirmwareSimulator:
         for name, value in (("rateHz", cfg.rate_hz), ("vmax", cfg.vmax), ("beta", cfg.beta),
                             ("clfGain", cfg.clf_gain), ("radius", cfg.radius)):
             set_param(cf, f"polycc.{name}", value)
+        shield_log = self._start_shield(cf, cfg) if cfg.shield else None
 
         def set_goal(w):
             for axis, v in zip("XYZ", w):
@@ -155,6 +195,9 @@ class FirmwareSimulator:
             raise PolyccError(f"the high-level takeoff to {start[2]:.2f} m did not get there within "
                               f"{duration + 5:.0f} s simulated (z = {p[2]:.2f} m); see {sitl.cf2_log}")
         sitl.sleep(0.5)
+        if shield_log is not None:
+            set_param(cf, "polyccShield.enable", 1)
+            sitl.sleep(0.1)
         self.say(f"took off to {start[2]:.2f} m; flying to {', '.join(f'{v:.2f}' for v in goal)}")
         t0 = sitl.time()
         n0 = len(samples)
@@ -185,6 +228,11 @@ class FirmwareSimulator:
         t_end = sitl.time()
         with lock:
             flight = list(samples[n0:])
+        shield = None
+        if shield_log is not None:  # the counters at the end of the flight (the landing is not counted)
+            sitl.sleep(0.2)  # one more log period
+            with shield_log[1]:
+                shield = {k: int(shield_log[2].get(f"polyccShield.{k}", 0)) for k in SHIELD_LOGS}
         set_param(cf, "polycc.enable", 0)  # the app hands the vehicle to the high-level commander
         self.say(f"{outcome} after {t_end - t0:.1f} s simulated; landing")
         sitl.sleep(0.5)
@@ -193,6 +241,8 @@ class FirmwareSimulator:
         cf.high_level_commander.land(0.0, land_s)
         landed = sitl.wait_until(lambda: sitl.state()["on_ground"] and not sitl.state()["motors_on"], land_s + 5.0)
         lc.stop()
+        if shield_log is not None:
+            shield_log[0].stop()
         traj = sitl.trajectory()
         sel = (traj[:, 0] >= t0) & (traj[:, 0] <= t_end + 1e-9)
         P = traj[sel, 1:4]
@@ -212,6 +262,15 @@ class FirmwareSimulator:
                       float(np.sum(np.linalg.norm(np.diff(P, axis=0), axis=1))), float(np.linalg.norm(goal - start)),
                       P, max_eval, statuses, reached=current)
         trial.impact_speed_ms = max((float(i["speed"]) for i in impacts), default=0.0)
+        trial.shield = shield
+        # jerk of the true vehicle at 100 Hz, as the fast simulator's: from the truth's velocity (%.6g rows:
+        # 1e-5 m/s steps, i.e. about 0.1 m/s^3 of jerk resolution)
+        Tt, V = traj[sel, 0], traj[sel, 4:7]
+        if len(V) > 2:
+            A = np.diff(V, axis=0) / np.diff(Tt)[:, None]
+            trial.jerk = np.linalg.norm(np.diff(A, axis=0), axis=1) / np.diff(Tt)[1:]
+        else:
+            trial.jerk = np.zeros(0)
         extra = {"landed": bool(landed), "touchdown_ms": trial.impact_speed_ms,
                  "start_actual": P[0].tolist(), "takeoff_s": duration}
         return trial, extra
