@@ -113,24 +113,24 @@ def call_swarm(emu, table: bytes, v: float, x, goal):
     """polycc_swarm_step(scene, params, sw, v, x, goal, out) in the model (AAPCS-VFP: v in s0)."""
     import struct
 
-    import bench_kernel as BK
-
+    from polycc.sim.cortex_m4_model import IO_BASE, STOP
     from polycc.sim.kernel_ffi import OUT_DTYPE
 
     U, uc = emu.U, emu.uc
-    px, pg, po, psw = BK.IO_BASE + 0x80, BK.IO_BASE + 0x90, BK.IO_BASE + 0xA0, BK.IO_BASE + 0x200
+    # the neighbour table after the spatial index's header (Emulator.load_scene puts it at IO_BASE + 0x200)
+    px, pg, po, psw = IO_BASE + 0x80, IO_BASE + 0x90, IO_BASE + 0xA0, IO_BASE + 0x1000
     uc.mem_write(px, np.asarray(x, np.float32).tobytes())
     uc.mem_write(pg, np.asarray(goal, np.float32).tobytes())
     uc.mem_write(psw, table)
-    sp = BK.IO_BASE - 0x100
+    sp = IO_BASE - 0x100
     uc.mem_write(sp, struct.pack("<II", pg, po))  # 5th and 6th integer arguments on the stack
     uc.reg_write(U.UC_ARM_REG_SP, sp)
     for reg, val in zip((U.UC_ARM_REG_R0, U.UC_ARM_REG_R1, U.UC_ARM_REG_R2, U.UC_ARM_REG_R3),
-                        (BK.IO_BASE, BK.IO_BASE + 0x40, psw, px)):
+                        (IO_BASE, IO_BASE + 0x40, psw, px)):
         uc.reg_write(reg, val)
     uc.reg_write(U.UC_ARM_REG_S0, struct.unpack("<I", struct.pack("<f", v))[0])
-    uc.reg_write(U.UC_ARM_REG_LR, BK.STOP | 1)
-    cost = emu.model.run(uc, emu.sym["polycc_swarm_step"], BK.STOP, emu.scene_range)
+    uc.reg_write(U.UC_ARM_REG_LR, STOP | 1)
+    cost = emu.model.run(uc, emu.sym["polycc_swarm_step"], STOP, emu.scene_range)
     return cost, np.frombuffer(bytes(uc.mem_read(po, OUT_DTYPE.itemsize)), OUT_DTYPE)
 
 
@@ -142,6 +142,7 @@ def arm_cost() -> dict:
     from polycc.onboard import barrier as B
     from polycc.onboard import swarm as SW
     from polycc.sim import kernel_arm
+    from polycc.sim.swarm_arm import table_bytes
 
     d = kernel_arm.build("swarm_bench", [Path(__file__).resolve().parent / "bench_swarm_main.c",
                                          kernel_arm.SRC / "polycc_swarm.c", kernel_arm.ARM_DIR / "startup.c",
@@ -161,9 +162,7 @@ def arm_cost() -> dict:
         dirs /= np.linalg.norm(dirs, axis=1)[:, None]
         for j in range(16):  # a ring at one distance: every term within 17/kappa of the minimum
             sw.report(j, (x + 0.6 * dirs[j]).astype(np.float32), 300, 0.1, x)
-        blob = b"".join(np.asarray(nb.n, np.float32).tobytes() + np.array([nb.a, nb.b, nb.r], np.float32).tobytes()
-                        + np.uint32(nb.age_ms).tobytes() + bytes([nb.id, 1, 0, 0]) for nb in sw.slots)
-        blob += np.uint32(16).tobytes()
+        blob = table_bytes(sw)
         c_k, _ = emu.call_step("polycc_step", x, x + 1)
         c_s, out = call_swarm(emu, blob, 1.0, x, x + 1)
         want = SW.step(sc, params, sw, 1.0, x, x + 1)
@@ -241,6 +240,7 @@ def main(argv=None) -> int:
                           "radius_m": RADIUS, "controllers": list(CONTROLLERS), "seed": a.seed},
                "table": {"header": header, "rows": table}, "trials": rows, "wall_s": time.perf_counter() - t0,
                "peak_rss_mb": peak_rss_mb()}
+    write_json(a.name, payload)  # the matrix is kept whatever the extras below do
     if a.instances:
         build, _ = arena_build(arenas[0])
         ic = instances_cost(build / "polytopes.h")
