@@ -532,7 +532,7 @@ def test_p2p_radio_on_the_real_firmware(arena):
     from polycc.link.cflib_tools import close_without_stop, set_param
     from polycc.onboard.app import NBR_FORMAT, NBR_MAGIC, P2P_PORT, pack_forget, pack_neighbour
     from polycc.sim.firmware.air import P2PAir
-    from polycc.sim.firmware.bridge import AIR_HELLO, P2P_CRTP_PORT
+    from polycc.sim.firmware.bridge import AIR_HELLO, AIR_STAMP, P2P_CRTP_PORT
     from polycc.testing.worlds import FirmwareWorld
 
     hdr = bytes([P2P_CRTP_PORT << 4])
@@ -556,7 +556,8 @@ def test_p2p_radio_on_the_real_firmware(arena):
                 heard, t_end = [], time.monotonic() + 60.0
                 while len(heard) < 10 and time.monotonic() < t_end:
                     data, _ = ear.recvfrom(64)
-                    heard.append(data)
+                    assert data[:1] == AIR_STAMP  # the sender's simulated time, then the packet
+                    heard.append(data[9:])
                 truth = w.truth()[0]
                 assert len(heard) == 10
                 for d in heard:

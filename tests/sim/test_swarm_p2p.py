@@ -254,3 +254,41 @@ def test_cli_refuses_a_relay_that_cannot_work(tmp_path, capsys):
     rc = main(["swarm-fly", str(tmp_path), "--uris", "udp://127.0.0.1:1,udp://127.0.0.1:2", "--relay", "p2p"])
     err = capsys.readouterr().err
     assert rc != 0 and "--relay ground" in err and "Traceback" not in err
+
+
+def test_bridge_air_is_causal_in_simulated_time():
+    """The bridge (no firmware needed) delivers another instance's P2P packet only once its own simulated
+    time has reached the sender's stamp, and ages a neighbour record from an instance behind it by the lag,
+    rounded up to the ms; "forget" and other apps' packets pass unchanged (regression: on a loaded CI host a
+    stalled instance's records arrived seconds late with their original age, and a drone went INSIDE)."""
+    import struct
+
+    from polycc.sim.firmware.bridge import AIR_STAMP, Bridge, BridgeConfig
+
+    b = Bridge(BridgeConfig(fw_port=0, cflib_port=0, cflib_host="127.0.0.1"))
+    try:
+        b.fw_addr, b.calibrated, b.quad.t = ("127.0.0.1", 9), True, 5.0
+        hdr = bytes([P2P_CRTP_PORT << 4, P2P_PORT])
+
+        def stamped(t, rec, port_hdr=hdr):
+            return AIR_STAMP + struct.pack("<d", t) + port_hdr + rec
+
+        def ages():
+            return [struct.unpack(NBR_FORMAT, d[2:])[5] if len(d) == 20 else None for _, d in b.pending]
+
+        b._handle_air(stamped(4.9, pack_neighbour(1, [1, 2, 3], 20, 0.1)), 0.0)  # 100 ms behind
+        assert ages() == [120]
+        b._handle_air(stamped(5.25, pack_neighbour(2, [1, 2, 3], 20, 0.1)), 0.0)  # ahead: held
+        b._handle_air(stamped(4.0, pack_forget(3)), 0.0)
+        b._handle_air(stamped(4.0, pack_neighbour(4, [1, 2, 3], 20, 0.1),
+                              bytes([P2P_CRTP_PORT << 4, P2P_PORT + 1])), 0.0)  # another app's record
+        b._handle_air(hdr + pack_neighbour(5, [1, 2, 3], 20, 0.1), 0.0)  # no stamp: as it is
+        assert ages() == [120, 0xFFFF, 20, 20] and len(b.air_future) == 1
+        b.quad.t = 5.2
+        b._release_air(0.0)
+        assert len(b.air_future) == 1  # not yet
+        b.quad.t = 5.3
+        b._release_air(0.0)
+        assert not b.air_future and ages()[-1] in (70, 71)  # 50 ms later than stamped (rounded up)
+    finally:
+        b.close()

@@ -4,8 +4,10 @@ On a Crazyflie, ``radiolinkSendP2PPacketBroadcast`` makes the nRF51 send a packe
 drone on the same radio channel hears and hands to its ``p2pRegisterCB`` callback. In the SITL the
 ``p2p`` build fix (``support/polycc_sitl_fixes.c``) sends it as a CRTP packet on an unused port; each
 instance's bridge (:mod:`polycc.sim.firmware.bridge` ``--air HOST:PORT``) takes those out of the
-firmware's traffic and sends them here, and this hub sends each one to every *other* registered
-bridge, which feeds it into its firmware. A bridge registers with a one-byte hello
+firmware's traffic and sends them here (stamped with the sender's simulated time), and this hub sends
+each one to every *other* registered bridge, which feeds it into its firmware causally in simulated time
+(the instances have no common clock; the bridge holds a packet from an instance ahead of it and ages a
+neighbour record from one behind it by the lag). A bridge registers with a one-byte hello
 (:data:`polycc.sim.firmware.bridge.AIR_HELLO`) from the socket it will use.
 
 The air loses nothing and adds no delay beyond the host's UDP and each bridge's pacing; ``drop`` (a

@@ -19,7 +19,13 @@ One process, one event loop (``select``), three UDP sockets:
   (:class:`polycc.sim.firmware.air.P2PAir`), which hands it to every other instance's bridge; a packet
   from the air goes into the firmware through the same paced FIFO as cflib's packets and reaches the
   app's ``p2pRegisterCB`` callback.  A cut cflib link (``cut``) does not cut P2P (the nRF's broadcast
-  needs no Crazyradio).
+  needs no Crazyradio).  The instances do not share a clock (each is lock-stepped to its own physics), so
+  each packet carries its sender's simulated time (:data:`AIR_STAMP`) and the air is causal in simulated
+  time, as the radio is in physical time: a packet from an instance that is ahead waits until this one's
+  simulated time reaches its stamp, and a neighbour record from one that is behind gets the lag added to
+  its stated age (the record is that much older here; "forget" is left alone). Measured on a loaded CI
+  host: without this, a record from a stalled instance arrived seconds "late" with its original age and
+  its fresh position jumped into a drone's buffer (status INSIDE).
 * **control socket** (ephemeral, announced on stdout), one UDP datagram per command, a JSON reply:
   ``state`` (the truth: simulated time ``t`` s, ``pos`` m, ``vel`` m/s, ``q``, ``pwm``, ``motors_on``,
   ``on_ground``, impacts), ``stats``, ``flush`` (write the trajectory rows so far), ``cut S`` (drop the
@@ -94,6 +100,7 @@ import termios
 import time
 from dataclasses import asdict, dataclass
 
+from polycc.onboard.app import NBR_FORGET, NBR_MAGIC, P2P_PORT
 from polycc.sim.firmware import physics
 from polycc.sim.firmware.arq import Arq
 
@@ -111,6 +118,7 @@ MOTOR_SILENCE_S = 0.5       # no motor packet for this long after they started: 
 LOOKBACK_S = 0.001          # packets sent this long before a motor packet may not have been read
 P2P_CRTP_PORT = 0x0B        # support/polycc_sitl_fixes.c POLYCC_SITL_P2P_CRTP_PORT: a P2P packet as CRTP
 AIR_HELLO = b"\x00"         # bridge -> air hub: register this socket (a P2P packet is >= 2 bytes)
+AIR_STAMP = b"\x02"         # bridge -> air: this prefix, the sender's simulated time (<d, s), then the packet
 
 
 @dataclass
@@ -162,6 +170,7 @@ class Bridge:
         self.pwm = (0, 0, 0, 0)
         self.calibrated = False
         self.pending = collections.deque()   # cflib -> firmware FIFO: (t_in, bytes)
+        self.air_future: list = []            # P2P packets stamped ahead of this instance: (sim t s, bytes)
         self.sent_times = collections.deque()
         self.arq = Arq() if (cfg.arq and cfg.mode == "paced") else None
         self.last_motor = None
@@ -290,7 +299,7 @@ class Bridge:
                 self.stats["p2p_no_air"] += 1
                 return
             try:
-                self.air.sendto(data, tuple(self.cfg.air))
+                self.air.sendto(AIR_STAMP + struct.pack("<d", self.quad.t) + data, tuple(self.cfg.air))
                 self.stats["p2p_tx"] += 1
             except OSError:
                 self.stats["p2p_send_err"] += 1
@@ -308,7 +317,12 @@ class Bridge:
                 self.stats["cflib_send_err"] += 1
 
     def _handle_air(self, data: bytes, now: float):
-        """Another instance's P2P broadcast: into this firmware, behind cflib's packets (the same pacing)."""
+        """Another instance's P2P broadcast: into this firmware, behind cflib's packets (the same pacing),
+        once this instance's simulated time has reached the sender's (module docstring)."""
+        t_s = None
+        if data[:1] == AIR_STAMP and len(data) >= 9:
+            t_s = struct.unpack("<d", data[1:9])[0]
+            data = data[9:]
         if len(data) < 2 or (data[0] >> 4) != P2P_CRTP_PORT:
             self.stats["p2p_bad"] += 1
             return
@@ -316,10 +330,31 @@ class Bridge:
             self.stats["p2p_before_calibration"] += 1
             return
         self.stats["p2p_rx"] += 1
+        if t_s is not None and t_s > self.quad.t:
+            self.air_future.append((t_s, data))
+            self.stats["p2p_held"] += 1
+            return
+        self._air_in(data, 0.0 if t_s is None else self.quad.t - t_s, now)
+
+    def _air_in(self, data: bytes, lag_s: float, now: float) -> None:
+        if lag_s > 0.0 and len(data) == 20 and data[1] == P2P_PORT and data[2] == NBR_MAGIC:  # a neighbour record
+            age = struct.unpack_from("<H", data, 16)[0]
+            if age != NBR_FORGET:
+                aged = min(NBR_FORGET - 1, age + int(-(-lag_s * 1000.0 // 1.0)))
+                data = data[:16] + struct.pack("<H", aged) + data[18:]
+                self.stats["p2p_aged"] += 1
         if self.cfg.mode == "naive":
             self._send_fw(data, now)
             return
         self.pending.append((now, data))
+
+    def _release_air(self, now: float) -> None:
+        """Held P2P packets whose stamp this instance's simulated time has reached (in stamp order)."""
+        ready = [p for p in self.air_future if p[0] <= self.quad.t]
+        if ready:
+            self.air_future = [p for p in self.air_future if p[0] > self.quad.t]
+            for t_s, data in sorted(ready, key=lambda p: p[0]):
+                self._air_in(data, self.quad.t - t_s, now)
 
     # ------------------------------------------------------------------ cflib side
     def _handle_cf(self, data: bytes, addr, now: float):
@@ -479,6 +514,8 @@ class Bridge:
                     return 4
             elif self.fw_addr is not None and self.next_imu is not None:
                 self._wall_mode(now)
+            if self.air_future:
+                self._release_air(now)
             if self.fw_addr is not None:
                 self._extras(now)
                 if self.last_motor is not None and not self.stalled and now - self.last_motor > MOTOR_SILENCE_S:
