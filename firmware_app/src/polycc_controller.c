@@ -328,6 +328,16 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
     if (!d.valid) { /* just switched on: the first decision is on its way */
         return;
     }
+    if (d.land && (int32_t)(tick - d.to) >= 0 && (ud[2] < 0.0f || sv[2] < 0.0f) &&
+        vel[0] * vel[0] + vel[1] * vel[1] <= POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED) {
+        /* A landing whose next decision is late (the app task did not run in time): the descent goes on
+         * while the source still descends and the vehicle does not drift, as that decision would continue it
+         * (landingAsked, landing = true). Braking instead stopped the descent, the vehicle lagged the
+         * high-level land and its motor stop dropped it from 0.24 m (real-firmware SITL, a loaded CI host). */
+        holding = false;
+        overrideLand(sp, d.at, ud[2]);
+        return;
+    }
     if ((int32_t)(tick - d.to) >= 0 || d.brake) { /* the backup, or a decision not replaced in time */
         if (!holding && (vel[0] * vel[0] + vel[1] * vel[1]) + vel[2] * vel[2] <=
                             POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED) {

@@ -356,3 +356,28 @@ def test_high_level_land_after_the_shield_held_a_go_to_lands_where_the_vehicle_i
     assert not m.motors_on, "the planner stops the motors when its land ends"
     assert z_cut < 0.03, f"the motors stopped {z_cut:.3f} m above the floor"
     assert worst >= 0.0 and abs(float(m.dyn.p[0]) - x_held) < 0.05  # straight down where it was held
+
+
+@pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
+def test_a_late_app_task_does_not_stall_a_landing(floor_header, dynamics):
+    """Regression (issue 18, real-firmware SITL on a loaded CI host): the shield's decisions come from the app
+    task; when one was late during a high-level landing the filter braked and held, the descent stalled
+    behind the land trajectory, and the planner's motor stop dropped the vehicle from 0.24 m. Now a landing
+    whose next decision is late goes on straight down while the source still descends. Here the app task
+    does not run for 100 ms out of every 150 ms of the landing."""
+    m = _land_model(floor_header, dynamics)
+    lib = m.app.lib
+    _run(m, 0.5)
+    assert lib.crtpCommanderHighLevelLand(0.0, 3.0) == 0
+    z_cut, seen = np.inf, set()
+    for k in range(80):
+        if k % 3 == 2:
+            m._next_app = m.sim_ms + 100  # no decision replaces the last one for 100 ms
+        _run(m, 0.05)
+        seen.add(int(_trace(m).status))
+        if m.motors_on:
+            z_cut = float(m.dyn.p[2])
+    _run(m, 1.0)
+    assert not m.motors_on and STATUS["landing"] in seen
+    assert z_cut < 0.03, f"the motors stopped {z_cut:.3f} m above the floor"
+    assert abs(float(m.dyn.p[0])) < 0.05 and abs(float(m.dyn.p[1])) < 0.05  # straight down
