@@ -386,6 +386,16 @@ static void handOverLand(void)
     pEnable = 0u;
 }
 
+/* Swarm: the fields of an 18-byte neighbour record (polycc_app.h: 'N', id, x, y, z, age ms, radius mm). */
+static void decodeNbr(const uint8_t *rec, float pj[3], uint16_t *age, float *radius)
+{
+    uint16_t rmm;
+    memcpy(pj, rec + 2, 12);
+    memcpy(age, rec + 14, 2);
+    memcpy(&rmm, rec + 16, 2);
+    *radius = (float)rmm * 0.001f;
+}
+
 /* Radio task (P2PCallback): one P2P packet heard; a neighbour record on POLYCC_APP_P2P_PORT goes into
  * the ring with its arrival tick, anything else on that port is counted and dropped. */
 static void onP2p(P2PPacket *p)
@@ -413,14 +423,12 @@ static void drainP2p(const float x[3])
     __sync_synchronize(); /* the slots up to head are read after head */
     for (; tail != head; ++tail) {
         const p2pRecord_t *r = &p2pRing[tail % POLYCC_APP_P2P_RING];
-        float pj[3];
-        uint16_t age, rmm;
-        memcpy(pj, r->rec + 2, 12);
-        memcpy(&age, r->rec + 14, 2);
-        memcpy(&rmm, r->rec + 16, 2);
+        float pj[3], rj;
+        uint16_t age;
+        decodeNbr(r->rec, pj, &age, &rj);
         if (age == POLYCC_APP_NBR_FORGET || (pSwarmId != 0u && r->rec[1] == pSwarmId) ||
             polycc_swarm_report(&swarm, r->rec[1], pj, (uint32_t)age + (now - r->tick) * (1000u / configTICK_RATE_HZ),
-                                (float)rmm * 0.001f, x) < 0) {
+                                rj, x) < 0) {
             lP2pDrop = (uint16_t)(lP2pDrop + 1u);
         } else {
             lP2pRx = (uint16_t)(lP2pRx + 1u);
@@ -477,15 +485,13 @@ static void serviceAppChannel(void)
         lastHeartbeat = xTaskGetTickCount();
         readVector(idX, idY, idZ, haveEstimate, x);
         if (n == POLYCC_APP_NBR_BYTES && rx[0] == POLYCC_APP_NBR_MAGIC && haveEstimate) { /* swarm: a neighbour */
-            float pj[3];
-            uint16_t age, rmm;
-            memcpy(pj, rx + 2, 12);
-            memcpy(&age, rx + 14, 2);
-            memcpy(&rmm, rx + 16, 2);
+            float pj[3], rj;
+            uint16_t age;
+            decodeNbr(rx, pj, &age, &rj);
             if (age == POLYCC_APP_NBR_FORGET) { /* the ground says it landed or left */
                 (void)polycc_swarm_forget(&swarm, rx[1]);
             } else {
-                (void)polycc_swarm_report(&swarm, rx[1], pj, (uint32_t)age + swarmPeriodMs, (float)rmm * 0.001f, x);
+                (void)polycc_swarm_report(&swarm, rx[1], pj, (uint32_t)age + swarmPeriodMs, rj, x);
             }
             lNbr = (uint8_t)swarm.count;
         }
