@@ -403,7 +403,9 @@ def _leave_all(flight: SwarmFlight, sessions, land: bool, clock, p2p: bool = Fal
                 set_param(s.cf, "polycc.swarmN", 0)
             except Exception:
                 pass
-        time.sleep(0.2)  # broadcasts already in the air arrive first
+        t_end = clock() + 0.2  # broadcasts already in the air arrive first (in the drones' time: SITL runs slow)
+        while clock() < t_end:
+            time.sleep(0.02)
     for i, s in enumerate(sessions):  # the ground is leaving: drop every relayed neighbour
         try:
             for j in range(len(sessions)):
