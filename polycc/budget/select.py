@@ -337,33 +337,18 @@ def select(
     if not done:
         raise PolyccError(impossible_budget_message(family, budget))
     # No candidate's certified worst case meets the rate: halve n (fewer polytopes, fewer per cell)
-    # a few times; if none does, keep the fastest candidate and say so in the binding budget.
-    for _ in range(5):
-        if any(c.meets_rate for c in done):
-            break
-        n = max(1, min(c.n for c in done) // 2)
-        more = _realise_all(family, budget, [(n, None)], normals, occ_vol, mc_samples, None)
-        done = sorted(done + more, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
-        if n == 1:
-            break
-    if not any(c.meets_rate for c in done) and budget.rate_cycles is not None:
-        # still none: the fewest polytopes with their half-planes capped so that even with every plane on
-        # the exp path the figure fits (outward reduction drops planes)
-        from dataclasses import replace
-
-        from polycc.budget.cycle_model import PER_EXP_PLANE_CYCLES, PER_PLANE_CYCLES, indexed_cycles
-
-        for n in sorted({min(c.n for c in done), 1}):
-            room = budget.rate_cycles - float(indexed_cycles(n, 0, 4, 0))
-            cap = int(room // (PER_PLANE_CYCLES + PER_EXP_PLANE_CYCLES))
-            if cap < MIN_PLANES * n:
-                continue
-            tight = replace(budget, max_halfplanes=min(cap, budget.max_halfplanes or cap))
-            more = _realise_all(family, tight, [(n, None)], normals, occ_vol, mc_samples, None)
-            done = sorted(done + [replace(c, meets_rate=c.worst_cycles <= budget.rate_cycles) for c in more],
-                          key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
-            if any(c.meets_rate for c in done):
+    # a few times, and cap the half-planes of every n so that the figure fits; the least conservative
+    # of those that meet it is taken (the first halved n that met it was taken before, see _tightened).
+    # If none does, keep the fastest candidate and say so in the binding budget.
+    if not any(c.meets_rate for c in done):
+        for _ in range(5):
+            n = max(1, min(c.n for c in done) // 2)
+            more = _realise_all(family, budget, [(n, None)], normals, occ_vol, mc_samples, None)
+            done = sorted(done + more, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+            if n == 1 or any(c.meets_rate for c in more):
                 break
+        if budget.rate_cycles is not None:
+            done = _tightened(family, budget, done, normals, occ_vol, mc_samples)
     if not any(c.meets_rate for c in done):
         best = min(done, key=lambda c: (c.worst_cycles, c.conservativeness))
         return best, done, (f"rate (missed: no candidate's certified worst case fits --rate-hz/--cpu-share; the "
@@ -374,7 +359,33 @@ def select(
     low = min(done, key=lambda c: (c.conservativeness, -c.n))
     best = min((c for c in done if c.conservativeness <= low.conservativeness + low.conservativeness_ci),
                key=lambda c: (c.n, c.conservativeness))
+    if best.caps.get("halfplanes") != budget.max_halfplanes:  # a cap of _tightened, not the user's
+        return best, done_all, (f"rate (no candidate met the certified worst case with all its half-planes: "
+                                f"capped at {best.caps['halfplanes']} so that it fits --rate-hz/--cpu-share)")
     return best, done_all, binding_text(family, best, done, done_all)
+
+
+def _tightened(family, budget, done, normals, occ_vol, mc_samples) -> list[Candidate]:
+    """``done`` plus, for every n realised so far and n = 1, the candidate with its half-planes capped so
+    that even with every plane on the exp path the certified figure fits --rate-hz (outward reduction drops
+    planes); the usual choice then takes the least conservative one that meets the rate.
+
+    Regression: the first halved n that met the rate ended the search, and only the smallest n and n = 1
+    were capped: the 150k-splat room at 2.5 cm got n = 1 (conservativeness 3.94) where n = 3 and n = 14 with
+    capped planes met the rate at 1.04."""
+    from dataclasses import replace
+
+    from polycc.budget.cycle_model import PER_EXP_PLANE_CYCLES, PER_PLANE_CYCLES, indexed_cycles
+
+    for n in sorted({c.n for c in done} | {1}, reverse=True):
+        room = budget.rate_cycles - float(indexed_cycles(n, 0, 4, 0))
+        cap = int(room // (PER_PLANE_CYCLES + PER_EXP_PLANE_CYCLES))
+        if cap < MIN_PLANES * n:
+            continue
+        tight = replace(budget, max_halfplanes=min(cap, budget.max_halfplanes or cap))
+        more = _realise_all(family, tight, [(n, None)], normals, occ_vol, mc_samples, None)
+        done = done + [replace(c, meets_rate=c.worst_cycles <= budget.rate_cycles) for c in more]
+    return sorted(done, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
 
 
 def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate],

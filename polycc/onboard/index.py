@@ -167,6 +167,38 @@ class _Geometry:
         thr = np.minimum(UB.min(axis=1), self.D) + self.slack
         return LB < thr[:, None], acc
 
+    def near(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Polytopes whose ball bound (as in :meth:`listed`) over the box [lo, hi] (grown by eps) is below
+        D + slack: every other one is listed by no box inside it (its lower bound there is at least as
+        large, and its upper bound, at least its lower bound, cannot lower the threshold below D + slack)."""
+        cen, half = (lo + hi) / 2, (hi - lo) / 2 + self.eps
+        dbox = np.linalg.norm(np.maximum(np.abs(cen[None] - self.c) - half, 0.0), axis=1)
+        lb_ball = (dbox * (1 - _CUSHION) - self.R) / self.ig - _CUSHION * (1.0 + dbox + self.R)
+        return np.flatnonzero(lb_ball < self.D + self.slack)
+
+    def listed_grid(self, ijk: np.ndarray, centres: np.ndarray, half: float, block: int = 4):
+        """:meth:`listed` of every top cell (integer cell ``ijk``, ``centres``, half side ``half``) against
+        every polytope, as (m, n) arrays, the same values for the listed entries: blocks of ``block``^3 cells
+        are evaluated against the polytopes :meth:`near` the block only (the top level cost grew with
+        cells x half-planes: 75 of 112 s of the 150k-splat room's budget at 2.5 cm)."""
+        n = len(self.first)
+        listed = np.zeros((len(centres), n), bool)
+        accs = np.zeros((len(centres), n), np.int64)
+        blk = ijk // block
+        _, which = np.unique(blk, axis=0, return_inverse=True)
+        order = np.argsort(which.ravel(), kind="stable")
+        cuts = np.flatnonzero(np.diff(which.ravel()[order])) + 1
+        for rows in np.split(order, cuts):
+            lo = centres[rows].min(axis=0) - half
+            hi = centres[rows].max(axis=0) + half
+            cand = self.near(lo, hi)
+            for i in range(0, len(rows), 2048):
+                r = rows[i:i + 2048]
+                a, b = self.listed(centres[r], half, cand)
+                listed[np.ix_(r, cand)] = a
+                accs[np.ix_(r, cand)] = b
+        return listed, accs
+
 
 def leaf_work(packed: PackedScene, kappa: float = 100.0) -> np.ndarray:
     """(leaves, 5) int: list id, depth, listed polytopes, their half-planes and the half-planes that can
@@ -249,10 +281,7 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
     idx = np.stack([ii.ravel(order="F"), jj.ravel(order="F"), kk.ravel(order="F")], axis=1)  # i fastest
     centres = origin + (idx + 0.5) * cell
     geo = _Geometry(packed, D, slack, eps, NEGLIGIBLE_NATS / kappa)
-    allk = np.arange(n)
-    parts = [geo.listed(centres[i:i + 2048], 0.5 * cell, allk) for i in range(0, len(centres), 2048)]
-    listed = np.concatenate([a for a, _ in parts])
-    accs = np.concatenate([b for _, b in parts])
+    listed, accs = geo.listed_grid(idx, centres, 0.5 * cell)
     count = geo.count
     # nodes: [centre, half, depth, list (polytope indices) or None, children or None, expensive planes]
     nodes = [[centres[i], 0.5 * cell, 0, np.nonzero(listed[i])[0], None, int(accs[i][listed[i]].sum())]

@@ -270,3 +270,33 @@ def test_a_rate_miss_does_not_end_the_search(monkeypatch):
     out = sel._realise_many(None, None, pairs, {n: 0 for n, _ in pairs}, 1.0, 0)
     assert asked == pairs
     assert [(c.n, c.max_normals) for c in out if c.meets_rate] == [(5, None), (26, None), (20, 8), (50, 8)]
+
+
+def test_a_rate_miss_caps_the_planes_of_every_n(monkeypatch):
+    """Regression: when no candidate met the rate, the first halved n that met it (n = 1) ended the search:
+    the 150k-splat room at 2.5 cm got one polytope (conservativeness 3.94) where n = 3 and n = 14 with their
+    half-planes capped met the rate at 1.04. Every n realised is now tried with the cap, largest first."""
+    from dataclasses import dataclass
+
+    from polycc.budget import select as sel
+
+    @dataclass
+    class C:
+        n: int
+        max_normals: None
+        worst_cycles: float
+        conservativeness: float
+        meets_rate: bool
+
+    asked = []
+
+    def fake_realise_all(family, budget, pairs, *a, **k):
+        (n, _), = pairs
+        asked.append((n, budget.max_halfplanes))
+        return [C(n, None, budget.rate_cycles / 2, 1.0 + 0.001 * n, False)]
+
+    monkeypatch.setattr(sel, "_realise_all", fake_realise_all)
+    done = [C(n, None, 1e9, c, m) for n, c, m in [(1, 3.94, True), (3, 1.044, False), (14, 1.038, False)]]
+    out = sel._tightened(None, Budget(65536, None, 67200.0, 0.3), done, None, 1.0, 0)
+    assert [n for n, _ in asked] == [14, 3, 1] and all(cap >= 4 * n for n, cap in asked)
+    assert {c.n for c in out if c.meets_rate and c.conservativeness < 1.1} >= {3, 14}
