@@ -117,6 +117,12 @@ def _default_cost(polys, planes):
     return 250.0 * np.asarray(polys, np.float64) + 70.0 * np.asarray(planes, np.float64)
 
 
+def _ball_lb(dbox, R, ig):
+    """Lower bound of max_l g_l over a box at distance ``dbox`` (m) from a polytope's centre, from its
+    bounding radius R (m) and 1/gamma ``ig``, with the outward cushion."""
+    return (dbox * (1 - _CUSHION) - R) / ig - _CUSHION * (1.0 + dbox + R)
+
+
 class _Geometry:
     """Plane rows of the scene and the per-box bounds of section 9 (float64, outward cushions)."""
 
@@ -162,8 +168,7 @@ class _Geometry:
         acc = np.add.reduceat((UBp > lead_lb[:, owner] - self.cut).astype(np.int64), seg, axis=1)
         cc, R, ig = self.c[cand], self.R[cand], self.ig[cand]
         dbox = np.linalg.norm(np.maximum(np.abs(centres[:, None, :] - cc[None]) - h, 0.0), axis=2)
-        lb_ball = (dbox * (1 - _CUSHION) - R) / ig - _CUSHION * (1.0 + dbox + R)
-        LB = np.maximum(LB, lb_ball)
+        LB = np.maximum(LB, _ball_lb(dbox, R, ig))
         thr = np.minimum(UB.min(axis=1), self.D) + self.slack
         return LB < thr[:, None], acc
 
@@ -173,8 +178,7 @@ class _Geometry:
         large, and its upper bound, at least its lower bound, cannot lower the threshold below D + slack)."""
         cen, half = (lo + hi) / 2, (hi - lo) / 2 + self.eps
         dbox = np.linalg.norm(np.maximum(np.abs(cen[None] - self.c) - half, 0.0), axis=1)
-        lb_ball = (dbox * (1 - _CUSHION) - self.R) / self.ig - _CUSHION * (1.0 + dbox + self.R)
-        return np.flatnonzero(lb_ball < self.D + self.slack)
+        return np.flatnonzero(_ball_lb(dbox, self.R, self.ig) < self.D + self.slack)
 
     def listed_grid(self, ijk: np.ndarray, centres: np.ndarray, half: float, block: int = 4):
         """:meth:`listed` of every top cell (integer cell ``ijk``, ``centres``, half side ``half``) against
