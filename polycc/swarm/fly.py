@@ -63,6 +63,9 @@ CONNECT_TIMEOUT_S = 90.0  # per attempt: TOC and all param values (a real-firmwa
 GOAL_RESEND_M = 0.03  # a new goal is written only when it moved this much, m
 P2P_LOGS = ("polycc.nNbr", "polycc.p2pRx", "polycc.p2pTx", "polycc.p2pDrop")
 ESTIMATE_LOST_S = 2.0  # wall s without a position sample from a drone: stop (simulated drones may run slow)
+PARAM_TIMEOUT_S = 10.0  # wall s for a param write to be confirmed: each drone's cflib queue writes one at a time, and
+#                          four SITL instances on a loaded host answer in seconds
+FIRST_ESTIMATE_S = 15.0  # wall s for every drone's first position sample (log blocks start one by one)
 
 
 @dataclass
@@ -201,17 +204,17 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
             configs.append(lc)
             if n == 1 or p2p:  # ground relay: the relayed records are the heartbeats (each is answered like one)
                 s.start_heartbeats()
-            set_param(cf, "polycc.radius", radius)
+            set_param(cf, "polycc.radius", radius, timeout_s=PARAM_TIMEOUT_S)
             if p2p:  # before the takeoff: the drones hear each other from the floor on
-                set_param(cf, "polycc.swarmN", n - 1)
-                set_param(cf, "polycc.p2pMs", max(1, round(1000.0 / bcast_hz)))
-                set_param(cf, "polycc.p2pAgeMs", min(65534, math.ceil(latency_ms)))
-                set_param(cf, "polycc.swarmId", i + 1)
+                set_param(cf, "polycc.swarmN", n - 1, timeout_s=PARAM_TIMEOUT_S)
+                set_param(cf, "polycc.p2pMs", max(1, round(1000.0 / bcast_hz)), timeout_s=PARAM_TIMEOUT_S)
+                set_param(cf, "polycc.p2pAgeMs", min(65534, math.ceil(latency_ms)), timeout_s=PARAM_TIMEOUT_S)
+                set_param(cf, "polycc.swarmId", i + 1, timeout_s=PARAM_TIMEOUT_S)
             for name, v in (("polycc.vmax", vmax), ("polycc.swarmV", swarm_v)):
                 if v is not None:
-                    set_param(cf, name, v)
+                    set_param(cf, name, v, timeout_s=PARAM_TIMEOUT_S)
             if _has_param(cf, "commander.enHighLevel"):
-                set_param(cf, "commander.enHighLevel", 1)
+                set_param(cf, "commander.enHighLevel", 1, timeout_s=PARAM_TIMEOUT_S)
         try:
             _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bcast_hz, ctrl_hz, latency_ms,
                  sense, arrived, lock, on_update, clock or time.monotonic, p2p)
@@ -257,7 +260,7 @@ def _positions(sessions) -> np.ndarray | None:
 def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bcast_hz, ctrl_hz, latency_ms, sense,
          arrived, lock, on_update, clock, p2p) -> None:
     n = len(sessions)
-    t_wait = time.monotonic() + 5.0
+    t_wait = time.monotonic() + FIRST_ESTIMATE_S
     while (P := _positions(sessions)) is None:
         if time.monotonic() > t_wait:
             raise PolyccError("no position estimate from every drone (stateEstimate.x/y/z); check positioning")
@@ -311,8 +314,8 @@ def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bc
     dens = cmap.density(controller, alive)
     for i, s in enumerate(sessions):
         for axis, v in zip("XYZ", P[i]):
-            set_param(s.cf, f"polycc.goal{axis}", float(v))
-        set_param(s.cf, "polycc.enable", 1)
+            set_param(s.cf, f"polycc.goal{axis}", float(v), timeout_s=PARAM_TIMEOUT_S)
+        set_param(s.cf, "polycc.enable", 1, timeout_s=PARAM_TIMEOUT_S)
     flight.wall_enabled = time.monotonic()
     flight.notes.append("apps enabled; coverage controllers running")
     t0 = clock()
@@ -368,7 +371,7 @@ def _leave_all(flight: SwarmFlight, sessions, land: bool, clock, p2p: bool = Fal
     for i, s in enumerate(sessions):
         try:
             if s.cf.is_connected():
-                set_param(s.cf, "polycc.enable", 0)
+                set_param(s.cf, "polycc.enable", 0, timeout_s=PARAM_TIMEOUT_S)
                 live.append(s)
         except Exception as e:
             flight.notes.append(f"drone {i}: could not disable the app ({e}); its watchdog lands it")
@@ -399,8 +402,8 @@ def _leave_all(flight: SwarmFlight, sessions, land: bool, clock, p2p: bool = Fal
     if p2p:  # the swarm is over: no more broadcasts, then drop what was heard (a P2P record never removes one)
         for s in sessions:
             try:
-                set_param(s.cf, "polycc.swarmId", 0)
-                set_param(s.cf, "polycc.swarmN", 0)
+                set_param(s.cf, "polycc.swarmId", 0, timeout_s=PARAM_TIMEOUT_S)
+                set_param(s.cf, "polycc.swarmN", 0, timeout_s=PARAM_TIMEOUT_S)
             except Exception:
                 pass
         t_end = clock() + 0.2  # broadcasts already in the air arrive first (in the drones' time: SITL runs slow)

@@ -41,9 +41,10 @@ def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones):
     capsys.readouterr()
     rc = main(["swarm-sim", str(out), "--drones", str(drones), "--random-targets", "1", "--seed", "1", "--t-max", "30",
                "--takeoff", "0.7", "--firmware", str(tree)] + (["--relay", relay] if relay != "p2p" else []))
-    text = capsys.readouterr().out
+    cap = capsys.readouterr()
+    text = cap.out + cap.err
+    assert rc == 0 and (out / "swarm.json").is_file(), text
     s = json.loads((out / "swarm.json").read_text())
-    assert rc == 0, text
     fw = s["firmware"]
     assert fw["outcome"] == "covered" and fw["landed"], text
     assert s["collisions"] == 0 and s["min_inter_drone_m"] > 2 * s["radius"], text
