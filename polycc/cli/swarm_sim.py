@@ -206,7 +206,7 @@ def run(args) -> int:
     }
     if facts is not None:
         summary["firmware"] = {k: facts[k] for k in ("outcome", "notes", "relay", "relayed", "p2p", "air", "build_s",
-                                                     "rtf", "wall_s", "landed")}
+                                                     "rtf", "wall_s", "landed", "sitl_reruns")}
         summary["dynamics"] = "real firmware SITL (rigid body)"
     (out / "swarm.json").write_text(json.dumps(summary, indent=1) + "\n")
     mind = f"{res.min_pair_m:.3f} m (bound 2 r = {2 * args.radius:.3f} m)" if math.isfinite(res.min_pair_m) else "-"
@@ -228,7 +228,9 @@ def run(args) -> int:
         else:
             heard = f"{facts['relayed']} neighbour records relayed by the ground"
         console.print(f"real firmware: {facts['outcome']}, {'landed' if facts['landed'] else 'NOT landed'}; "
-                      f"{heard}; RTF {rtf}; {facts['wall_s']:.0f} s wall", soft_wrap=True)
+                      f"{heard}; RTF {rtf}; {facts['wall_s']:.0f} s wall"
+                      + (f"; flown twice, the first attempt failed: {facts['sitl_reruns'][0]}"
+                         if facts["sitl_reruns"] else ""), soft_wrap=True)
         if facts["outcome"] not in ("covered", "timeout") or not facts["landed"]:
             return 1
     return 1 if dd + do else 0

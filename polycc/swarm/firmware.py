@@ -56,38 +56,31 @@ def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, tar
     simulator's form (positions = truth every 10 ms of each drone's time) and the run's facts
     (``outcome``, ``rtf``, ``build_s``, ``relayed``, ``p2p``). ``relay="p2p"``: the instances broadcast to
     each other through a :class:`polycc.sim.firmware.air.P2PAir` (losing ``air_drop`` of the packets per
-    receiver); ``"ground"``: this process relays over cflib."""
-    from polycc.sim.firmware.air import P2PAir
+    receiver); ``"ground"``: this process relays over cflib. A flight the simulator fails (any
+    :class:`PolyccError` but a cf2 or bridge exit, :class:`~polycc.sim.firmware.sitl.SitlExited`) is
+    reported through ``say`` and flown once more on fresh instances; ``facts["sitl_reruns"]`` lists why."""
     from polycc.sim.firmware.build import build_cf2
-    from polycc.sim.firmware.sitl import FirmwareSitl
-    from polycc.swarm.fly import swarm_fly
+    from polycc.sim.firmware.sitl import SitlExited
 
     t0 = time.monotonic()
     build = build_cf2(fwdir, header)
     say(f"cf2 with the app: {'cached' if build.cached else 'built'} in {build.seconds:.0f} s")
     n = len(starts)
-    with ExitStack() as stack:
-        air = stack.enter_context(P2PAir(drop=air_drop)) if relay == "p2p" else None
-        sitls = []
-        for s in starts:
-            sitls.append(stack.enter_context(FirmwareSitl(build, start=(float(s[0]), float(s[1]), 0.0),
-                                                          bridge_args=["--air", air.arg] if air else [])))
-        say(f"{n} SITL instances up in {time.monotonic() - t0:.0f} s")
-        marks: list[tuple[float, list[float]]] = []
-
-        def clock() -> float:
-            ts = [sl.time() for sl in sitls]
-            marks.append((time.monotonic(), ts))
-            return min(ts)
-
-        fl = swarm_fly([sl.uri for sl in sitls], cmap, targets, controller=cfg.controller, takeoff=takeoff,
-                       radius=cfg.radius, t_max=cfg.t_max_s, bcast_hz=min(10.0, 1000.0 / cfg.bcast_ms),
-                       latency_ms=max(50.0, cfg.latency_ms), sense=cfg.sense_m, clock=clock, vmax=cfg.vmax,
-                       swarm_v=cfg.swarm_v, relay=relay)
-        clock()
-        air_stats = dict(air.stats) if air else {}
-        trajs = [sl.trajectory() for sl in sitls]
-        stats = [sl.stats() for sl in sitls]
+    reruns = []
+    while True:
+        try:
+            fl, marks, trajs, stats, air_stats = _fly_once(build, starts, cmap, targets, cfg, takeoff, relay,
+                                                           air_drop, t0, say)
+            break
+        except SitlExited:  # a crash of cf2 or the bridge is a failure, never flown again
+            raise
+        except PolyccError as exc:
+            # the simulator itself failed (a bridge that stopped answering, a link that would not confirm on
+            # a loaded host): reported, and the whole swarm flown once more from the floor on fresh instances
+            if reruns:
+                raise PolyccError(f"{exc} (and on the first attempt: {reruns[0]})") from None
+            reruns.append(str(exc))
+            say(f"the SITL flight failed ({exc}); flying the swarm once more on fresh instances")
     wall = np.array([m[0] for m in marks])
     sims = np.array([m[1] for m in marks])  # (k, n)
     # common wall axis at 100 Hz over the flight; each drone's truth at the simulated time it had then
@@ -131,6 +124,39 @@ def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, tar
                       fl.detected_by, targets, np.asarray(starts, float))
     facts = {"outcome": fl.outcome, "notes": fl.notes, "relayed": fl.relayed, "build_s": build.seconds,
              "rtf": [s.get("rtf") for s in stats], "wall_s": time.monotonic() - t0,
-             "relay": relay, "p2p": fl.p2p, "air": air_stats,
+             "relay": relay, "p2p": fl.p2p, "air": air_stats, "sitl_reruns": reruns,
              "landed": any(x.startswith("landed") for x in fl.notes)}
     return res, facts
+
+
+def _fly_once(build, starts, cmap, targets, cfg, takeoff, relay, air_drop, t0, say):
+    """One flight on fresh SITL instances: (SwarmFlight, [(wall, [sim t per drone])], truths, bridge stats,
+    air stats)."""
+    from polycc.sim.firmware.air import P2PAir
+    from polycc.sim.firmware.sitl import FirmwareSitl
+    from polycc.swarm.fly import swarm_fly
+
+    n = len(starts)
+    with ExitStack() as stack:
+        air = stack.enter_context(P2PAir(drop=air_drop)) if relay == "p2p" else None
+        sitls = []
+        for s in starts:
+            sitls.append(stack.enter_context(FirmwareSitl(build, start=(float(s[0]), float(s[1]), 0.0),
+                                                          bridge_args=["--air", air.arg] if air else [])))
+        say(f"{n} SITL instances up in {time.monotonic() - t0:.0f} s")
+        marks: list[tuple[float, list[float]]] = []
+
+        def clock() -> float:
+            ts = [sl.time() for sl in sitls]
+            marks.append((time.monotonic(), ts))
+            return min(ts)
+
+        fl = swarm_fly([sl.uri for sl in sitls], cmap, targets, controller=cfg.controller, takeoff=takeoff,
+                       radius=cfg.radius, t_max=cfg.t_max_s, bcast_hz=min(10.0, 1000.0 / cfg.bcast_ms),
+                       latency_ms=max(50.0, cfg.latency_ms), sense=cfg.sense_m, clock=clock, vmax=cfg.vmax,
+                       swarm_v=cfg.swarm_v, relay=relay)
+        clock()
+        air_stats = dict(air.stats) if air else {}
+        trajs = [sl.trajectory() for sl in sitls]
+        stats = [sl.stats() for sl in sitls]
+    return fl, marks, trajs, stats, air_stats

@@ -59,3 +59,32 @@ def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones):
     else:
         assert fw["relayed"] > 0
     assert (out / "coverage.png").stat().st_size > 10_000
+
+
+def test_a_failed_simulator_flight_is_flown_once_more_and_a_crash_never(monkeypatch):
+    """run_swarm_firmware's retry: a PolyccError of the simulated flight is reported and flown once
+    more (a second failure names both); a cf2 or bridge exit (SitlExited) is raised at once."""
+    import polycc.sim.firmware.build as fb
+    import polycc.swarm.firmware as sf
+    from polycc.errors import PolyccError
+    from polycc.sim.firmware.sitl import SitlExited
+
+    monkeypatch.setattr(fb, "build_cf2", lambda fwdir, header: type("B", (), {"cached": True, "seconds": 0.0})())
+    calls, said = [], []
+
+    def fails(exc):
+        def once(*a, **k):
+            calls.append(exc)
+            raise exc
+        return once
+
+    monkeypatch.setattr(sf, "_fly_once", fails(PolyccError("no confirmation of polycc.enable = 1 within 10 s")))
+    with pytest.raises(PolyccError, match="and on the first attempt: no confirmation") as e:
+        sf.run_swarm_firmware("fw", "h", None, [(0, 0)], None, None, say=said.append)
+    assert len(calls) == 2 and not isinstance(e.value, SitlExited)
+    assert any("flying the swarm once more" in m for m in said)
+    calls.clear()
+    monkeypatch.setattr(sf, "_fly_once", fails(SitlExited("the SITL firmware (cf2) exited with status -11")))
+    with pytest.raises(SitlExited):
+        sf.run_swarm_firmware("fw", "h", None, [(0, 0)], None, None, say=said.append)
+    assert len(calls) == 1

@@ -61,6 +61,10 @@ class SitlError(PolyccError):
     """A one-line failure of the real-firmware SITL (start, run or stop)."""
 
 
+class SitlExited(SitlError):
+    """cf2 or the bridge exited: a crash of the firmware (or of the simulator), never retried."""
+
+
 class SitlStall(SitlError):
     """The simulation stopped advancing: cf2 took no tick for :data:`STALL_S` wall seconds while both
     processes were alive. The simulator hung, not the flight: the message names the threads' states and
@@ -241,7 +245,7 @@ class FirmwareSitl:
                 ev = self._q.get(timeout=min(left, 0.2))
             except queue.Empty:
                 if self.fw is not None and self.fw.poll() is not None:
-                    raise SitlError(f"cf2 exited with status {self.fw.returncode} during start-up (last line of "
+                    raise SitlExited(f"cf2 exited with status {self.fw.returncode} during start-up (last line of "
                                     f"{self.cf2_log}: {_last_line(self.cf2_log)!r})") from None
                 continue
             name = ev.get("event")
@@ -250,7 +254,7 @@ class FirmwareSitl:
             if name == "error":
                 raise SitlError(f"SITL bridge: {ev.get('message')}")
             if name == "bridge_eof":
-                raise SitlError(f"the SITL bridge exited with status {self.bridge.wait()} during start-up "
+                raise SitlExited(f"the SITL bridge exited with status {self.bridge.wait()} during start-up "
                                 f"({_last_line(self.bridge_err)!r}; see {self.bridge_err})")
 
     def _start(self) -> None:
@@ -451,10 +455,10 @@ class FirmwareSitl:
 
     def check_alive(self) -> None:
         if self.fw is not None and self.fw.poll() is not None:
-            raise SitlError(f"the SITL firmware (cf2) exited with status {self.fw.returncode} "
+            raise SitlExited(f"the SITL firmware (cf2) exited with status {self.fw.returncode} "
                             f"({_last_line(self.cf2_log)!r}; see {self.cf2_log})")
         if self.bridge is not None and self.bridge.poll() is not None:
-            raise SitlError(f"the SITL bridge exited with status {self.bridge.returncode} "
+            raise SitlExited(f"the SITL bridge exited with status {self.bridge.returncode} "
                             f"({_last_line(self.bridge_err)!r}; see {self.bridge_err})")
 
     # ------------------------------------------------------------------ stop
