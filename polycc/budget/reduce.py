@@ -27,6 +27,81 @@ def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -
     return np.inf if v is None else max(polytope_volume(v) - volume, 0.0)
 
 
+class _Stream:
+    """The lazy greedy's operations on one polytope, recorded so that they are computed once.
+
+    The global greedy pops the cheapest entry of one heap over every polytope; the entries of one
+    polytope are only ever pushed when one of its own entries is popped, so the sequence of its pops
+    (a drop, a stale cost recomputed, or nothing) depends on that polytope alone. Only how far along
+    its sequence each polytope gets depends on the others (and on the caps). A stream records that
+    sequence and extends it on demand; with a cache the candidates of one selection, and the tighter
+    retries of one candidate, replay it instead of recomputing qhull volumes.
+
+    ``cap``: the per-polytope limit when this polytope is above it (its drops down to the limit come
+    first, from their own heap, as the greedy's first phase); None otherwise."""
+
+    def __init__(self, planes: np.ndarray, interior: np.ndarray, volume: float, cap: int | None, costs0):
+        self.planes = planes
+        self.ids = np.arange(len(planes))
+        self.interior = interior
+        self.volume = volume
+        self.version = 0
+        c0 = costs0(planes, interior, volume)
+        self.need = len(planes) if len(planes) <= MIN_PLANES else max(MIN_PLANES, sum(not np.isfinite(c) for c in c0))
+        self.dropped: list[int] = []  # original rows, in drop order
+        self.ops: list[tuple] = []  # popped keys (c, orig, ver) of the global phase and whether each dropped
+        self.ok = True
+        self.pre_costs: list[float] = []  # the volumes its first-phase drops added, in order
+        heap = self._entries(c0)
+        if cap is not None and len(planes) > cap:
+            while len(self.planes) > cap:
+                if not heap:
+                    self.ok = False
+                    break
+                _, c = self._pop(heap)
+                if c is not None:
+                    self.pre_costs.append(c)
+            heap = self._entries(None)
+        self.heap = heap
+
+    def _entries(self, c0):
+        if len(self.planes) <= MIN_PLANES:
+            return []
+        cs = c0 if c0 is not None and self.version == 0 else [
+            drop_cost(self.planes, j, self.interior, self.volume) for j in range(len(self.planes))]
+        heap = [(c, int(self.ids[j]), self.version) for j, c in enumerate(cs) if np.isfinite(c)]
+        heapq.heapify(heap)
+        return heap
+
+    def _pop(self, heap) -> tuple:
+        """One pop of the greedy on this polytope: (key, added volume m^3 or None)."""
+        key = heapq.heappop(heap)
+        c, orig, ver = key
+        rows = np.flatnonzero(self.ids == orig)
+        if not rows.size or len(self.planes) <= MIN_PLANES:
+            return key, None
+        j = int(rows[0])
+        if ver != self.version:
+            c = drop_cost(self.planes, j, self.interior, self.volume)
+            if np.isfinite(c):
+                heapq.heappush(heap, (c, orig, self.version))
+            return key, None
+        self.planes = np.delete(self.planes, j, axis=0)
+        self.ids = np.delete(self.ids, j)
+        self.volume += c
+        self.version += 1
+        self.dropped.append(orig)
+        return key, c
+
+    def op(self, i: int):
+        """The i-th pop of the global phase, (key, added volume or None), or None past the end."""
+        while len(self.ops) <= i:
+            if not self.heap:
+                return None
+            self.ops.append(self._pop(self.heap))
+        return self.ops[i]
+
+
 def reduce_planes(
     polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int, per_polytope: int | None = None,
     cost_cache: dict | None = None,
@@ -42,13 +117,15 @@ def reduce_planes(
     reaches the top of the heap and pushed back, so only a few costs are recomputed per
     drop (removing planes makes the others' caps grow, so stale costs are mostly lower
     bounds). Safety does not depend on the costs: every drop is outward and is only
-    committed after an exact boundedness check.
+    committed after an exact boundedness check. First every polytope above ``per_polytope``
+    is cut down to it on its own, then one heap over all polytopes runs.
 
     A plane whose removal alone leaves its polytope unbounded stays in every bounded reduction
     (fewer normals cannot span more), so if these essential planes alone exceed ``max_planes``
     the call fails before dropping anything. ``cost_cache`` (a dict the caller keeps across
-    calls, e.g. over the candidates of one selection) memoises the drop costs of a polytope's
-    original planes, keyed by their bytes.
+    calls, e.g. over the candidates of one selection) keeps each polytope's recorded greedy
+    (:class:`_Stream`), keyed by its planes, vertices and limit: the result is the same as
+    without it, bit for bit.
     """
     cap = per_polytope if per_polytope is not None else 1 << 30
     total = sum(len(h) for h, _ in polytopes)
@@ -56,69 +133,61 @@ def reduce_planes(
         return [np.asarray(h) for h, _ in polytopes], 0.0
     if max_planes < MIN_PLANES * len(polytopes) or cap < MIN_PLANES:
         return None
-    planes = [np.asarray(h, np.float64) for h, _ in polytopes]
-    ids = [np.arange(len(h)) for h in planes]  # original row of each current plane
-    interior = [np.asarray(v, np.float64).mean(axis=0) for _, v in polytopes]
-    volume = [polytope_volume(np.asarray(v, np.float64)) for _, v in polytopes]
-    version = [0] * len(planes)
-    added = 0.0
-
-    def costs(k) -> list[float]:
-        if cost_cache is None or version[k]:
-            return [drop_cost(planes[k], j, interior[k], volume[k]) for j in range(len(planes[k]))]
-        key = planes[k].tobytes()
-        if key not in cost_cache:
-            cost_cache[key] = [drop_cost(planes[k], j, interior[k], volume[k]) for j in range(len(planes[k]))]
-        return cost_cache[key]
-
-    def entries(ks):
-        heap = []
-        for k in ks:
-            if len(planes[k]) <= MIN_PLANES:
-                continue
-            for j, c in enumerate(costs(k)):
-                if np.isfinite(c):
-                    heap.append((c, k, int(ids[k][j]), version[k]))
-        heapq.heapify(heap)
-        return heap
-
+    store = {} if cost_cache is None else cost_cache
+    costs0 = _costs0(store)
+    streams = []
+    for h, v in polytopes:
+        h = np.asarray(h, np.float64)
+        v = np.asarray(v, np.float64)
+        limit = cap if len(h) > cap else None
+        key = ("stream", h.tobytes(), v.tobytes(), limit)
+        if key not in store:
+            store[key] = _Stream(h, v.mean(axis=0), polytope_volume(v), limit, costs0)
+        streams.append(store[key])
     # lower bound: essential planes (infinite drop cost) are never dropped
-    need = 0
-    for k in range(len(planes)):
-        if len(planes[k]) <= MIN_PLANES:
-            need += len(planes[k])
-        else:
-            need += max(MIN_PLANES, sum(1 for c in costs(k) if not np.isfinite(c)))
-    if need > max_planes:
+    if sum(s.need for s in streams) > max_planes:
         return None
-    n_total = [sum(len(h) for h in planes)]
-
-    def drop_until(heap, done) -> bool:
-        nonlocal added
-        while not done():
-            if not heap:
-                return False
-            c, k, orig, ver = heapq.heappop(heap)
-            rows = np.flatnonzero(ids[k] == orig)
-            if not rows.size or len(planes[k]) <= MIN_PLANES:
-                continue
-            j = int(rows[0])
-            if ver != version[k]:
-                c = drop_cost(planes[k], j, interior[k], volume[k])
-                if np.isfinite(c):
-                    heapq.heappush(heap, (c, k, orig, version[k]))
-                continue
-            planes[k] = np.delete(planes[k], j, axis=0)
-            ids[k] = np.delete(ids[k], j)
-            n_total[0] -= 1
-            volume[k] += c
-            version[k] += 1
+    if not all(s.ok for s in streams):
+        return None
+    n_drop = [len(s.pre_costs) for s in streams]
+    n_total = sum(len(h) for h, _ in polytopes) - sum(n_drop)
+    added = 0.0
+    for s in streams:  # the first phase's drops, polytope by polytope (the order they were added in)
+        for c in s.pre_costs:
             added += c
-        return True
-
-    for k in [k for k in range(len(planes)) if len(planes[k]) > cap]:
-        if not drop_until(entries([k]), lambda k=k: len(planes[k]) <= cap):
+    pos = [0] * len(streams)
+    heap = []
+    for k, s in enumerate(streams):
+        first = s.op(0)
+        if first is not None:
+            heap.append((first[0][0], k, first[0][1], first[0][2]))
+    heapq.heapify(heap)
+    while n_total > max_planes:
+        if not heap:
             return None
-    if not drop_until(entries(range(len(planes))), lambda: n_total[0] <= max_planes):
-        return None
-    return planes, added
+        _, k, _, _ = heapq.heappop(heap)
+        s = streams[k]
+        _, c = s.op(pos[k])
+        pos[k] += 1
+        if c is not None:
+            n_drop[k] += 1
+            n_total -= 1
+            added += c
+        nxt = s.op(pos[k])
+        if nxt is not None:
+            heapq.heappush(heap, (nxt[0][0], k, nxt[0][1], nxt[0][2]))
+    out = []
+    for (h, _), s, m in zip(polytopes, streams, n_drop):
+        h = np.asarray(h, np.float64)
+        out.append(np.delete(h, sorted(s.dropped[:m]), axis=0) if m else h)
+    return out, added
+
+
+def _costs0(store: dict):
+    """Drop costs of a polytope's original planes, memoised in ``store`` by the planes' bytes."""
+    def costs0(planes, interior, volume):
+        key = ("costs", planes.tobytes())
+        if key not in store:
+            store[key] = [drop_cost(planes, j, interior, volume) for j in range(len(planes))]
+        return store[key]
+    return costs0

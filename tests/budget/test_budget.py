@@ -8,6 +8,8 @@ import subprocess
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
 from polycc.budget.reduce import reduce_planes
@@ -215,8 +217,91 @@ def test_cost_cache_does_not_change_the_reduction():
     plain = reduce_planes(polys, 40)
     for _ in range(2):  # second pass hits the cache
         cached = reduce_planes(polys, 40, cost_cache=cache)
-        assert len(cache) == 4
+        assert len(cache) == 8  # per polytope: its original drop costs and its recorded greedy
         assert all(np.array_equal(a, b) for a, b in zip(plain[0], cached[0])) and plain[1] == cached[1]
+
+
+def _one_heap_greedy(polytopes, max_planes, per_polytope=None):
+    """The reduction as it was written before the per-polytope streams (one heap over every plane of
+    every polytope, no cache): the oracle of the test below."""
+    import heapq
+
+    from polycc.budget.reduce import MIN_PLANES, drop_cost
+    from polycc.geometry.halfplanes import polytope_volume
+
+    cap = per_polytope if per_polytope is not None else 1 << 30
+    if sum(len(h) for h, _ in polytopes) <= max_planes and all(len(h) <= cap for h, _ in polytopes):
+        return [np.asarray(h) for h, _ in polytopes], 0.0
+    if max_planes < MIN_PLANES * len(polytopes) or cap < MIN_PLANES:
+        return None
+    planes = [np.asarray(h, np.float64) for h, _ in polytopes]
+    ids = [np.arange(len(h)) for h in planes]
+    interior = [np.asarray(v, np.float64).mean(axis=0) for _, v in polytopes]
+    volume = [polytope_volume(np.asarray(v, np.float64)) for _, v in polytopes]
+    version = [0] * len(planes)
+    added = [0.0]
+    costs = lambda k: [drop_cost(planes[k], j, interior[k], volume[k]) for j in range(len(planes[k]))]  # noqa: E731
+
+    def entries(ks):
+        heap = [(c, k, int(ids[k][j]), version[k]) for k in ks if len(planes[k]) > MIN_PLANES
+                for j, c in enumerate(costs(k)) if np.isfinite(c)]
+        heapq.heapify(heap)
+        return heap
+
+    need = sum(len(planes[k]) if len(planes[k]) <= MIN_PLANES else
+               max(MIN_PLANES, sum(1 for c in costs(k) if not np.isfinite(c))) for k in range(len(planes)))
+    if need > max_planes:
+        return None
+
+    def drop_until(heap, done):
+        while not done():
+            if not heap:
+                return False
+            c, k, orig, ver = heapq.heappop(heap)
+            rows = np.flatnonzero(ids[k] == orig)
+            if not rows.size or len(planes[k]) <= MIN_PLANES:
+                continue
+            j = int(rows[0])
+            if ver != version[k]:
+                c = drop_cost(planes[k], j, interior[k], volume[k])
+                if np.isfinite(c):
+                    heapq.heappush(heap, (c, k, orig, version[k]))
+                continue
+            planes[k], ids[k] = np.delete(planes[k], j, axis=0), np.delete(ids[k], j)
+            volume[k] += c
+            version[k] += 1
+            added[0] += c
+        return True
+
+    for k in [k for k in range(len(planes)) if len(planes[k]) > cap]:
+        if not drop_until(entries([k]), lambda k=k: len(planes[k]) <= cap):
+            return None
+    if not drop_until(entries(range(len(planes))), lambda: sum(len(h) for h in planes) <= max_planes):
+        return None
+    return planes, added[0]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), fracs=st.lists(st.floats(0.15, 0.95), min_size=1, max_size=4),
+       per_polytope=st.sampled_from([None, 12, 24]), dup=st.booleans())
+def test_recorded_streams_reduce_exactly_as_one_heap(seed, fracs, per_polytope, dup):
+    """The per-polytope streams (recorded once, replayed by later calls through the cache) give the one-heap
+    greedy's result bit for bit: the same planes kept and the same added volume, for any caps, for calls
+    sharing a cache in any order, and with a polytope listed twice."""
+    rng = np.random.default_rng(seed)
+    polys = [random_hull(rng, n=int(rng.integers(8, 45))) for _ in range(int(rng.integers(1, 6)))]
+    if dup:
+        polys.append(polys[0])
+    total = sum(len(h) for h, _ in polys)
+    cache: dict = {}
+    for f in fracs:
+        want = _one_heap_greedy(polys, int(total * f), per_polytope)
+        for got in (reduce_planes(polys, int(total * f), per_polytope),
+                    reduce_planes(polys, int(total * f), per_polytope, cost_cache=cache)):
+            assert (want is None) == (got is None)
+            if want is not None:
+                assert got[1] == want[1] and len(got[0]) == len(want[0])
+                assert all(np.array_equal(a, b) for a, b in zip(got[0], want[0]))
 
 
 def test_record_cache_packs_identical_bytes():
