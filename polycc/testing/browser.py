@@ -48,6 +48,20 @@ class Page:
             time.sleep(0.25)
         raise TimeoutError(f"the page still shows {text!r} after {timeout_s:g} s")
 
+    def wait_for_text(self, *texts: str, timeout_s: float = 60.0) -> str:
+        """The page's text once it shows every one of ``texts`` (a connected viser client receives its GUI
+        after the "Connected" notice, later on a loaded host); TimeoutError naming the missing ones."""
+        t0 = time.monotonic()
+        while True:
+            body = self.page.inner_text("body")
+            missing = [t for t in texts if t not in body]
+            if not missing:
+                return body
+            if time.monotonic() - t0 > timeout_s:
+                raise TimeoutError(f"the page does not show {missing} after {timeout_s:g} s; it shows "
+                                   f"{body[:300]!r}")
+            time.sleep(0.25)
+
     def png(self) -> bytes:
         return self.page.screenshot(timeout=self.timeout_ms)
 
