@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from polycc.budget.cycle_model import SHIELD_PERIOD_TICKS
 from polycc.cli.argtypes import add_point_option, number
 from polycc.cli.plan import add_plan_options
 from polycc.cli.scene_args import (
@@ -19,6 +20,8 @@ from polycc.cli.scene_args import (
 )
 from polycc.errors import PolyccError
 
+SHIELD_HZ = 1000.0 / SHIELD_PERIOD_TICKS  # the shield's decisions per second (1 ms ticks)
+STARVED_SHARE = 0.9  # fewer decisions than this share of SHIELD_HZ: the app task was starved (a warning)
 HELP = "fly the Crazyflie app (same C code, host build) through the scene and check clearance"
 
 
@@ -280,6 +283,9 @@ def run(args) -> int:
     }
     if args.shield:
         summary["shield"] = {k: int(sum(t.shield[k] for t in trials)) for k in trials[0].shield}
+        flown_s = sum(t.time_s for t in trials)
+        # counted from the switch-on (just before the flight) to the end: about SHIELD_HZ per flown second
+        summary["shield"]["decisions_per_s"] = round(summary["shield"]["decisions"] / flown_s, 1) if flown_s else 0.0
     if args.plan:
         summary["plan"] = {"margin_m": args.margin, "grid_m": args.grid, "switch_tolerance_m": args.margin,
                            "no_path": [{"pair": i + 1, "start": pairs[i][0].tolist(), "goal": pairs[i][1].tolist(),
@@ -301,5 +307,12 @@ def run(args) -> int:
         words = (("decisions", "decisions"), ("certified", "certified"), ("backups", "backups (braking)"),
                  ("infeasible", "infeasible"), ("manual", "manual ticks"))
         console.print("shield: " + ", ".join(f"{sh[k]} {w}" for k, w in words if k in sh)
-                      + ("" if "certified" in sh else " (the real firmware logs no certified count)"), soft_wrap=True)
+                      + ("" if "certified" in sh else " (the real firmware logs no certified count)")
+                      + f"; {sh['decisions_per_s']:.0f} decisions per flown second (it plans at {SHIELD_HZ:.0f} Hz)",
+                      soft_wrap=True)
+        if sh["decisions_per_s"] < STARVED_SHARE * SHIELD_HZ:
+            console.print(f"[yellow]warning:[/] the shield decided only {sh['decisions_per_s']:.0f} times per "
+                          f"second of its {SHIELD_HZ:.0f}: the app task did not get its CPU time, so these flights "
+                          "are not what the M4 would fly (a starved simulator, or --rate-hz too high for the "
+                          "scene); its late decisions were flown as brakes", soft_wrap=True)
     return 1 if collisions else 0

@@ -217,3 +217,24 @@ def test_sim_command(walls, tmp_path, capsys):
     assert rc == 0 and "3 trials" in out and "collisions: 0" in out
     assert main(["sim", str(tmp_path), "--scene", str(ply)]) == 2  # no polytopes.h there
     assert main(["sim", str(d), "--scene", str(ply), "--rate-hz", "5", "--start", "0,0,1", "--goal", "1,1,1"]) == 2
+
+
+def test_sim_command_reports_the_shield_decision_rate(walls, tmp_path, capsys):
+    """The summary names the shield's decisions per flown second (100 Hz planned), and sim.json keeps it; a
+    starved real-firmware app made about half of them and its late decisions were flown as brakes, which the
+    summary now warns about instead of leaving a bare "stuck"."""
+    import json
+
+    from polycc.scene.writers import write_gaussian_ply
+
+    d, ell = walls
+    ply = tmp_path / "walls.ply"
+    write_gaussian_ply(ply, ell)
+    rc = main(["sim", str(d), "--scene", str(ply), "--start=" + ",".join(map(str, START)),
+               "--goal=" + ",".join(map(str, GOAL)), "--vmax", "1", "--shield", "--plot", str(tmp_path / "t.png")])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    sh = json.loads((d / "sim.json").read_text())["shield"]
+    assert 95 <= sh["decisions_per_s"] <= 105, sh
+    assert f"{sh['decisions_per_s']:.0f} decisions per flown second (it plans at 100 Hz)" in out, out
+    assert "did not get its CPU time" not in out
