@@ -16,6 +16,25 @@
  *   - exits cf2 when the pipe reaches EOF (the bridge is gone).
  * One byte per 1 ms physics step, so firmware time == physics time.
  *
+ * The reader's fair share (also only with POLYCC_SITL_TICK_FD).  The fork's socket reader task
+ * (src/hal/src/socketlink.c:83, priority 2) blocks in poll(-1) and yields (vTaskDelay(1)) only
+ * when poll fails with EINTR, i.e. when the tick's SIGALRM lands while it is inside poll.
+ * FreeRTOS counts a task blocked in poll as running, so the priority-1 tasks (the app, log,
+ * param) run only in the ticks after such an EINTR.  The bridge sends each step's IMU just
+ * before its tick byte: on an idle host the reader is back in poll before the tick arrives; on
+ * a loaded one it is often still runnable with the IMU when the tick is taken, poll returns the
+ * IMU instead of EINTR, and the reader holds the CPU for the whole next tick.  The app then
+ * made 36-61 of its 100 decisions per second.  So this shim also wraps
+ *   - sigaction(SIGALRM): the port's tick handler runs behind a trampoline that counts the
+ *     ticks taken on each thread (thread-local, so a task counts only ticks it was running for);
+ *   - poll(..., -1): a thread that took a tick since its last EINTR (while it was running,
+ *     between two polls or in one whose data won the race) first gets what is already in the
+ *     socket, then EINTR as soon as nothing is, as it would have if the tick had landed inside
+ *     a blocked poll.  Otherwise poll blocks as before.
+ * Every tick the reader was running for thus yields once, whatever the host's thread timing,
+ * and no datagram waits behind a yield that was already in the socket; none is lost or
+ * reordered.
+ *
  * Always: stdout line-buffered (replaces `stdbuf -oL`, which would need its own LD_PRELOAD).
  * Without POLYCC_SITL_TICK_FD: setitimer passes through unchanged (the fork's wall clock).
  *
@@ -24,6 +43,7 @@
 #define _GNU_SOURCE
 #include <dlfcn.h>
 #include <errno.h>
+#include <poll.h>
 #include <pthread.h>
 #include <signal.h>
 #include <stdio.h>
@@ -46,6 +66,14 @@ static int tick_started;
 static volatile unsigned long ticks_raised;
 
 static int (*real_setitimer)(polycc_which_t, const struct itimerval *, struct itimerval *);
+static int (*real_sigaction)(int, const struct sigaction *, struct sigaction *);
+static int (*real_poll)(struct pollfd *, nfds_t, int);
+
+/* the port's SIGALRM handler, and the ticks taken / yielded for on this thread */
+static void (*port_tick_handler)(int);
+static void (*port_tick_action)(int, siginfo_t *, void *);
+static __thread volatile unsigned long ticks_here __attribute__((tls_model("initial-exec")));
+static __thread unsigned long ticks_yielded __attribute__((tls_model("initial-exec")));
 
 __attribute__((constructor)) static void polycc_sitl_clock_init(void)
 {
@@ -53,6 +81,8 @@ __attribute__((constructor)) static void polycc_sitl_clock_init(void)
     setvbuf(stdout, NULL, _IOLBF, 0);
     real_setitimer = (int (*)(polycc_which_t, const struct itimerval *, struct itimerval *))dlsym(RTLD_NEXT,
                                                                                                    "setitimer");
+    real_sigaction = (int (*)(int, const struct sigaction *, struct sigaction *))dlsym(RTLD_NEXT, "sigaction");
+    real_poll = (int (*)(struct pollfd *, nfds_t, int))dlsym(RTLD_NEXT, "poll");
     if (fd && *fd) {
         tick_fd = atoi(fd);
     }
@@ -121,4 +151,53 @@ int setitimer(polycc_which_t which, const struct itimerval *new_value, struct it
         tick_started = 1;
     }
     return 0;
+}
+
+static void tick_trampoline(int sig)
+{
+    ++ticks_here;
+    port_tick_handler(sig);
+}
+
+static void tick_trampoline_info(int sig, siginfo_t *info, void *uc)
+{
+    ++ticks_here;
+    port_tick_action(sig, info, uc);
+}
+
+int sigaction(int sig, const struct sigaction *act, struct sigaction *old)
+{
+    if (tick_fd < 0 || sig != SIGALRM || act == NULL) {
+        return real_sigaction(sig, act, old);
+    }
+    struct sigaction wrapped = *act;
+    if (act->sa_flags & SA_SIGINFO) {
+        port_tick_action = act->sa_sigaction;
+        wrapped.sa_sigaction = tick_trampoline_info;
+    } else if (act->sa_handler != SIG_IGN && act->sa_handler != SIG_DFL) {
+        port_tick_handler = act->sa_handler;
+        wrapped.sa_handler = tick_trampoline;
+    }
+    return real_sigaction(sig, &wrapped, old);
+}
+
+int poll(struct pollfd *fds, nfds_t nfds, int timeout)
+{
+    if (tick_fd < 0 || timeout >= 0) {
+        return real_poll(fds, nfds, timeout);
+    }
+    if (ticks_here != ticks_yielded) {  /* a tick came while this task was running */
+        int ready = real_poll(fds, nfds, 0);
+        if (ready != 0) {
+            return ready;               /* first take what is already there (the step's IMU) */
+        }
+        ticks_yielded = ticks_here;     /* then yield for the tick */
+        errno = EINTR;
+        return -1;
+    }
+    int r = real_poll(fds, nfds, timeout);
+    if (r < 0 && errno == EINTR) {
+        ticks_yielded = ticks_here;     /* the tick landed inside poll: the caller yields for it */
+    }
+    return r;
 }
