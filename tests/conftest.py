@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,15 @@ try:
     settings.load_profile("polycc")
 except ImportError:  # pragma: no cover
     pass
+
+
+def pytest_configure(config):
+    """Tests stop `polycc sim-device` & co. with SIGINT, as Ctrl-C in a terminal does. A suite started in the
+    background (``make test &``, nohup, some CI runners) inherits SIGINT ignored, every child it spawns would
+    too, and Python then never raises KeyboardInterrupt: the device would not stop. Run as a foreground
+    terminal would (runs in the main process and in every xdist worker)."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture

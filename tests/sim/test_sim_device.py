@@ -262,6 +262,15 @@ def _start_sim_device(scene_dir, *extra):
     raise AssertionError("sim-device printed no URI:\n" + "".join(lines))
 
 
+def test_ctrl_c_reaches_the_devices_the_tests_start():
+    """Regression: `make test` started in the background (nohup, ``&``) ran with SIGINT ignored, every
+    sim-device it spawned inherited that, ignored the tests' Ctrl-C and was killed after 10 s (rc -9: three
+    cflib tests failed). tests/conftest.py restores the terminal default; a child must see Python's handler."""
+    probe = "import signal; print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "True", "SIGINT is ignored in the test's children: Ctrl-C would not stop them"
+
+
 def fly_end_to_end(scene_dir, start, goal, csv_path, timeout_s: float = 15.0, floor: bool = False) -> list[dict]:
     """Two terminals: `polycc sim-device OUT --udp ...` (a subprocess, stopped with Ctrl-C) and
     `polycc fly --uri ... --goal ...` (in-process; from the floor with --takeoff ... --land). Returns
