@@ -71,12 +71,17 @@ class SitlStall(SitlError):
     ``stall.txt`` in the run folder holds the bridge's counters and cf2's backtraces (gdb, when installed)."""
 
 
+try:  # resolved here, in the parent: a dlopen between fork and exec can deadlock on a lock another thread held
+    _PRCTL = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+except (OSError, AttributeError):  # not glibc Linux
+    _PRCTL = None
+
+
 def _die_with_parent():
-    """preexec_fn: SIGKILL when the parent dies (Linux)."""
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    except OSError:
-        pass
+    """preexec_fn: SIGKILL when the parent dies (Linux). Runs between fork and exec in a parent that has
+    threads (the bridge reader, xdist's), so it only makes the system call."""
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 _live: list["FirmwareSitl"] = []
