@@ -3,8 +3,8 @@
 Removing a half-plane from {p : n_l . p <= d_l} can only enlarge the polytope, so every
 occupied voxel it contained stays inside. A plane is only dropped if the remaining ones
 still bound a finite polytope (:func:`polycc.geometry.halfplanes.is_bounded` with a margin
-:data:`MIN_GAMMA`). Volumes come from qhull (scipy.spatial): the vertices of the reduced
-polytope by half-space intersection, then their convex hull.
+:data:`MIN_GAMMA`). Volumes come from qhull (scipy.spatial): the half-space intersection of the reduced
+polytope and its triangulated dual (:func:`polycc.geometry.halfplanes.polytope_vertices_volume`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import heapq
 
 import numpy as np
 
-from polycc.geometry.halfplanes import MIN_PLANES, polytope_vertices, polytope_volume
+from polycc.geometry.halfplanes import MIN_PLANES, polytope_vertices_volume, polytope_volume
 
 # A polytope counts as bounded only if the origin lies at least this far inside the convex
 # hull of its unit normals (gamma = min_{|u|=1} max_l n_l . u >= this), which also rules out
@@ -23,8 +23,8 @@ MIN_GAMMA = 1e-4
 
 def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -> float:
     """Volume added by dropping plane j (inf if the rest is unbounded)."""
-    v = polytope_vertices(np.delete(planes, j, axis=0), interior, MIN_GAMMA)
-    return np.inf if v is None else max(polytope_volume(v) - volume, 0.0)
+    r = polytope_vertices_volume(np.delete(planes, j, axis=0), interior, MIN_GAMMA)
+    return np.inf if r is None else max(r[1] - volume, 0.0)
 
 
 class _Stream:

@@ -8,7 +8,8 @@ Rows are ``[nx, ny, nz, d]`` (float64 here). Each primitive exists once:
   required depth of the origin in the hull of the unit normals (gamma = min_{|u|=1} max_l
   n_l . u); a positive margin also rules out needle-like polytopes.
 * :func:`chebyshev_centre` -- centre and radius of the largest ball in P (HiGHS LP).
-* :func:`polytope_vertices` -- vertices by half-space intersection (qhull), or None.
+* :func:`polytope_vertices` -- vertices by half-space intersection (qhull), or None;
+  :func:`polytope_vertices_volume` -- the same and the volume, from the same qhull run.
 * :func:`inv_gamma` -- 1/gamma of a set of normals (the culling factor of the on-board layout).
 * :func:`hull_halfplanes`, :func:`axis_box` -- half-planes of a convex hull of points / of a box.
 
@@ -16,6 +17,8 @@ Rows are ``[nx, ny, nz, d]`` (float64 here). Each primitive exists once:
 """
 
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
@@ -55,12 +58,8 @@ def chebyshev_centre(h: np.ndarray) -> tuple[np.ndarray, float]:
     return res.x[:3], float(res.x[3])
 
 
-def polytope_vertices(h: np.ndarray, interior: np.ndarray | None = None, min_gamma: float = 1e-9,
-                      max_reach: float = 1e6) -> np.ndarray | None:
-    """Vertices of ``{n . p <= d}`` (rows ``[n, d]``), or None if it is unbounded or degenerate.
-
-    ``interior`` is a strictly interior point (default: the Chebyshev centre). Vertices farther
-    than ``max_reach`` metres from it count as unbounded."""
+def _intersection(h: np.ndarray, interior, min_gamma: float, max_reach: float):
+    """qhull's half-space intersection of ``{n . p <= d}`` and the interior point used, or None."""
     h = np.asarray(h, np.float64)
     if not is_bounded(h[:, :3], min_gamma):
         return None
@@ -72,12 +71,75 @@ def polytope_vertices(h: np.ndarray, interior: np.ndarray | None = None, min_gam
     interior = np.asarray(interior, np.float64)
     try:
         with np.errstate(divide="ignore", invalid="ignore"):
-            v = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], interior).intersections
+            hs = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], interior)
     except (QhullError, ValueError):
         return None
+    v = hs.intersections
     if len(v) == 0 or not np.all(np.isfinite(v)) or np.abs(v - interior).max() > max_reach:
         return None
-    return v
+    return hs, interior
+
+
+def polytope_vertices(h: np.ndarray, interior: np.ndarray | None = None, min_gamma: float = 1e-9,
+                      max_reach: float = 1e6) -> np.ndarray | None:
+    """Vertices of ``{n . p <= d}`` (rows ``[n, d]``), or None if it is unbounded or degenerate.
+
+    ``interior`` is a strictly interior point (default: the Chebyshev centre). Vertices farther
+    than ``max_reach`` metres from it count as unbounded."""
+    r = _intersection(h, interior, min_gamma, max_reach)
+    return None if r is None else r[0].intersections
+
+
+def polytope_vertices_volume(h: np.ndarray, interior: np.ndarray | None = None, min_gamma: float = 1e-9,
+                             max_reach: float = 1e6) -> tuple[np.ndarray, float] | None:
+    """(vertices, volume m^3) of ``{n . p <= d}``, or None as :func:`polytope_vertices`.
+
+    The volume comes from the same qhull run, not a second hull of the vertices (which cost 3-4x the
+    intersection on the 100-300-plane polytopes of a 2.5 cm build). Each facet of qhull's dual hull is a
+    vertex and lists the planes it lies on, so each plane p lists the vertices of its face. Ordered by
+    angle around their mean g_p (a convex face), they give the face's area A_p by the shoelace formula,
+    and V = sum_p A_p h_p / 3, h_p the distance of plane p from the interior point. Falls back to the
+    hull of the vertices if fewer than four faces have an area."""
+    r = _intersection(h, interior, min_gamma, max_reach)
+    if r is None:
+        return None
+    hs, c = r
+    v = hs.intersections
+    vol = _dual_volume(hs.dual_facets, v, c, np.asarray(h, np.float64))
+    return v, (polytope_volume(v) if vol is None else vol)
+
+
+def _dual_volume(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> float | None:
+    """Volume from qhull's dual (see :func:`polytope_vertices_volume`), None if a face is degenerate."""
+    if not len(facets):
+        return None
+    sizes = np.fromiter((len(f) for f in facets), np.int64, len(facets))
+    p = np.fromiter(itertools.chain.from_iterable(facets), np.int64, int(sizes.sum()))
+    i = np.repeat(np.arange(len(facets)), sizes)  # incidence (vertex i lies on plane p)
+    n_planes = len(planes)
+    w = v - c
+    cnt = np.bincount(p, minlength=n_planes).astype(np.float64)
+    if np.count_nonzero(cnt >= 3) < MIN_PLANES:
+        return None
+    g = np.stack([np.bincount(p, weights=w[i, k], minlength=n_planes) for k in range(3)], axis=1)
+    g /= np.maximum(cnt, 1.0)[:, None]  # face means, relative to c
+    n = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(n, e1)
+    r = w[i] - g[p]
+    x = np.einsum("ij,ij->i", r, e1[p])
+    y = np.einsum("ij,ij->i", r, e2[p])
+    order = np.lexsort((np.arctan2(y, x), p))  # each face's vertices in angular order around its mean
+    p, x, y = p[order], x[order], y[order]
+    start = np.r_[0, np.flatnonzero(np.diff(p)) + 1]
+    nxt = np.arange(1, len(p) + 1)
+    nxt[np.r_[start[1:], len(p)] - 1] = start  # the last vertex of a face is followed by its first
+    cross = x * y[nxt] - x[nxt] * y
+    area = np.bincount(p, weights=cross, minlength=n_planes) * 0.5
+    height = np.einsum("ij,ij->i", g, n)  # distance of each face's plane from c (g lies on the face)
+    return float((area * height).sum() / 3.0)
 
 
 def polytope_volume(vertices: np.ndarray) -> float:
