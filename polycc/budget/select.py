@@ -316,11 +316,16 @@ def select(
     mc_samples: int = 100_000,
     progress: Callable[[int, int], None] | None = None,
     normal_caps: tuple = NORMAL_CAPS,
+    workers: int | None = None,
 ) -> tuple[Candidate, list[Candidate], str]:
     """Best candidate, every evaluated candidate, and the name of the binding budget.
 
     Candidates are pairs (n, T) over the table caps ``normal_caps``; a cap T is only tried at n
-    where H^n has more than T distinct normals (otherwise it is the uncapped table)."""
+    where H^n has more than T distinct normals (otherwise it is the uncapped table). The uncapped
+    candidates are realised first; a capped one is skipped when the uncapped candidates next to its n
+    (below and above, where realised) all miss the rate budget (:func:`_capped_worth_trying`).
+    ``workers``: local processes for a large family (None = every core); the result does not depend
+    on it."""
     occ_vol = len(family.grid_indices) * family.voxel_size**3
     normals = _Normals(family)
     counts = plane_counts(family, normals.merged_per_node)
@@ -333,7 +338,14 @@ def select(
                 continue  # the table is not capped at this n: same as uncapped
             pairs.append((n, T))
     pairs = sorted(set(pairs), key=lambda p: (p[0], -1 if p[1] is None else -p[1]))
-    done = _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress)
+    realise_all = _Realiser(family, normals, occ_vol, mc_samples, workers, counts)
+    plain = [p for p in pairs if p[1] is None]
+    step = (lambda base: (lambda d, _t: progress(base + d, len(pairs)))) if progress else (lambda base: None)
+    done = realise_all(budget, plain, step(0))
+    capped = [p for p in pairs if p[1] is not None and _capped_worth_trying(p[0], done, budget)]
+    done = sorted(done + realise_all(budget, capped, step(len(plain))), key=_order)
+    if progress:
+        progress(len(pairs), len(pairs))
     if not done:
         raise PolyccError(impossible_budget_message(family, budget))
     # No candidate's certified worst case meets the rate: halve n (fewer polytopes, fewer per cell)
@@ -343,12 +355,12 @@ def select(
     if not any(c.meets_rate for c in done):
         for _ in range(5):
             n = max(1, min(c.n for c in done) // 2)
-            more = _realise_all(family, budget, [(n, None)], normals, occ_vol, mc_samples, None)
-            done = sorted(done + more, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+            more = realise_all(budget, [(n, None)])
+            done = sorted(done + more, key=_order)
             if n == 1 or any(c.meets_rate for c in more):
                 break
         if budget.rate_cycles is not None:
-            done = _tightened(family, budget, done, normals, occ_vol, mc_samples)
+            done = _tightened(budget, done, realise_all)
     if not any(c.meets_rate for c in done):
         best = min(done, key=lambda c: (c.worst_cycles, c.conservativeness))
         return best, done, (f"rate (missed: no candidate's certified worst case fits --rate-hz/--cpu-share; the "
@@ -365,7 +377,7 @@ def select(
     return best, done_all, binding_text(family, best, done, done_all)
 
 
-def _tightened(family, budget, done, normals, occ_vol, mc_samples) -> list[Candidate]:
+def _tightened(budget, done, realise_all) -> list[Candidate]:
     """``done`` plus, for every n realised so far and n = 1, the candidate with its half-planes capped so
     that even with every plane on the exp path the certified figure fits --rate-hz (outward reduction drops
     planes); the usual choice then takes the least conservative one that meets the rate.
@@ -383,9 +395,9 @@ def _tightened(family, budget, done, normals, occ_vol, mc_samples) -> list[Candi
         if cap < MIN_PLANES * n:
             continue
         tight = replace(budget, max_halfplanes=min(cap, budget.max_halfplanes or cap))
-        more = _realise_all(family, tight, [(n, None)], normals, occ_vol, mc_samples, None)
+        more = realise_all(tight, [(n, None)])
         done = done + [replace(c, meets_rate=c.worst_cycles <= budget.rate_cycles) for c in more]
-    return sorted(done, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+    return sorted(done, key=_order)
 
 
 def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate],
@@ -409,11 +421,35 @@ def binding_text(family: CoverFamily, best: Candidate, done: list[Candidate],
     return "none (larger n fit, but were not measurably less conservative)"
 
 
-def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, progress=None) -> list[Candidate]:
+def _order(c) -> tuple:
+    return (c.n, -1 if c.max_normals is None else -c.max_normals)
+
+
+def _capped_worth_trying(n: int, done: list[Candidate], budget: Budget) -> bool:
+    """Whether a capped-table candidate at n can meet the rate budget, judged by the uncapped ones realised.
+
+    A capped table only buys half-planes (12 B per normal dropped): at the same n the capped candidate
+    keeps a prefix of the same greedy's drops, so at least the uncapped planes, on polytopes its coarser
+    normals make no smaller, and the certified worst case grows with the planes listed per cell. So when
+    the uncapped candidates next to n (the largest realised n' <= n and the smallest n' >= n, those that
+    exist) all miss the rate, the capped one is not realised: on the 1.5M-splat room at 2.5 cm all seven
+    missed it by 4-10x (543 000-686 000 cycles against 67 200) and took 327 of the 445 CPU seconds of the
+    selection. Always tried without a rate budget or when nothing uncapped was realised."""
+    if budget.rate_cycles is None or budget.clearance_cap is None or not done:
+        return True
+    below = [c for c in done if c.n <= n]
+    above = [c for c in done if c.n >= n]
+    near = ([max(below, key=lambda c: c.n)] if below else []) + ([min(above, key=lambda c: c.n)] if above else [])
+    return any(c.meets_rate for c in near)
+
+
+def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, progress=None,
+                  caches: dict | None = None) -> list[Candidate]:
     """Realise every pair of ``pairs`` in their order (increasing n). No candidate is skipped after one
     misses the rate budget: the certified worst case is not monotone in n (skipping the larger n after a
-    miss cut the 2.5 cm room's cover from n = 26 to n = 5, conservativeness 1.33 -> 18)."""
-    caches: dict = {}  # shared by these candidates: drop costs and records of common polytopes
+    miss cut the 2.5 cm room's cover from n = 26 to n = 5, conservativeness 1.33 -> 18). ``caches`` is
+    shared by these candidates (drop costs and records of common polytopes)."""
+    caches = {} if caches is None else caches
     out = []
     for i, (n, T) in enumerate(pairs):
         out.append(realise(family, n, T, budget, normals_before[n], occ_vol, mc_samples, caches=caches))
@@ -422,27 +458,140 @@ def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, pr
     return [c for c in out if c is not None]
 
 
-def _realise_all(family, budget, pairs, normals, occ_vol, mc_samples, progress) -> list[Candidate]:
-    """Realise every (n, T) pair.  The uncapped-table candidates run here, in order of n (they
-    share most polytopes, so the caches pay); the capped ones run in a forked worker on the
-    second core when the family is big enough for that to pay."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
+PARALLEL_MIN_POLYTOPES = 500  # a family whose sub-cover is smaller is selected in this process (forks do not pay)
+_FORKED: dict = {}  # what forked workers read (set before the fork, so nothing big is pickled)
 
-    counts = {n: normals.count(n) for n, _ in pairs}
-    here = [p for p in pairs if p[1] is None]
-    there = [p for p in pairs if p[1] is not None]
-    report = (lambda i: progress(i, len(pairs))) if progress else None
-    if there and here and "fork" in mp.get_all_start_methods() and family.n_max > 500:
-        with ProcessPoolExecutor(1, mp_context=mp.get_context("fork")) as ex:
-            fut = ex.submit(_realise_many, family, budget, there, counts, occ_vol, mc_samples)
-            done = _realise_many(family, budget, here, counts, occ_vol, mc_samples, report)
-            done += fut.result()
-    else:
-        done = _realise_many(family, budget, here + there, counts, occ_vol, mc_samples, report)
-    if progress and pairs:
-        progress(len(pairs), len(pairs))
-    return sorted(done, key=lambda c: (c.n, -1 if c.max_normals is None else -c.max_normals))
+
+def _merged_rows(p) -> np.ndarray:
+    """The polytope's planes with those pack_scene would store as one (same snapped normal) merged, as
+    :func:`realise` hands them to the reduction."""
+    _, first = np.unique(normal_keys(p.halfplanes), return_index=True)
+    return np.asarray(p.halfplanes[np.sort(first)], np.float64)
+
+
+def _costs_chunk(idx: list[int]) -> list[list[float]]:
+    from polycc.budget.reduce import drop_cost
+    from polycc.geometry.halfplanes import polytope_volume
+
+    todo = _FORKED["costs"]
+    out = []
+    for k in idx:
+        h, v = todo[k]
+        c, vol = v.mean(axis=0), polytope_volume(v)
+        out.append([drop_cost(h, j, c, vol) for j in range(len(h))])
+    return out
+
+
+def _group_forked(g: int) -> list[Candidate]:
+    st = _FORKED["run"]
+    return _realise_many(st["family"], st["budget"], st["groups"][g], st["counts"], st["occ_vol"], st["mc_samples"],
+                         caches=st["caches"])
+
+
+class _Realiser:
+    """Realises (n, T) pairs for one selection, with one cache for every call (drop costs, the recorded
+    greedy streams, polytope records, boxes: the candidates of a selection share most polytopes).
+
+    A family of at least :data:`PARALLEL_MIN_POLYTOPES` polytopes is spread over ``workers`` processes:
+    first the drop costs of every polytope of the pairs that will be reduced (one qhull per plane, the bulk
+    of the work), balanced by planes squared, then the pairs themselves in contiguous runs of n
+    (neighbouring n share polytopes), each run's worker starting from the cache with those costs in it.
+    The workers are forked, so they read the family and the cache without a copy; this process runs one
+    share itself. The result does not depend on ``workers``: :func:`realise` is a pure function of its
+    pair, and the cache gives the same result bit for bit (the drop costs are computed by the same code
+    on the same float64 inputs)."""
+
+    def __init__(self, family, normals, occ_vol, mc_samples, workers, counts):
+        from polycc.parallel import available_cores
+
+        self.family, self.normals, self.occ_vol, self.mc_samples = family, normals, occ_vol, mc_samples
+        self.counts = counts  # merged half-planes of H^n
+        self.workers = available_cores() if workers is None else max(1, int(workers))
+        self.caches: dict = {}
+
+    def _parallel(self, pairs) -> bool:
+        import multiprocessing as mp
+
+        return (self.workers > 1 and len(pairs) > 1 and self.family.n_max >= PARALLEL_MIN_POLYTOPES
+                and "fork" in mp.get_all_start_methods())
+
+    def __call__(self, budget: Budget, pairs, progress: Callable[[int, int], None] | None = None):
+        pairs = list(pairs)
+        before = {n: self.normals.count(n) for n, _ in pairs}
+        report = (lambda i: progress(i, len(pairs))) if progress else None
+        if not self._parallel(pairs):
+            return _realise_many(self.family, budget, pairs, before, self.occ_vol, self.mc_samples, report,
+                                 caches=self.caches)
+        self._drop_costs(budget, pairs, before)
+        groups = _split(pairs, [float(self.counts[n]) ** 1.5 for n, _ in pairs], self.workers)
+        return self._fork(_group_forked, range(1, len(groups)), dict(
+            run=dict(family=self.family, budget=budget, groups=groups, counts=before, occ_vol=self.occ_vol,
+                     mc_samples=self.mc_samples, caches=self.caches)),
+            lambda: _realise_many(self.family, budget, groups[0], before, self.occ_vol, self.mc_samples,
+                                  report, caches=self.caches), report, [len(g) for g in groups])
+
+    def _drop_costs(self, budget, pairs, before) -> None:
+        """Fill the cache with the drop costs of every polytope the reduction of these pairs will need."""
+        store = self.caches.setdefault("drop_costs", {})
+        todo, seen = [], set()
+        for n in sorted({n for n, T in pairs}):
+            t = max(before[n] if T is None else min(T, before[n]) for m, T in pairs if m == n)
+            reduced = self.counts[n] > 0.8 * budget.capacity(n, t)  # the index's bytes may force it near the cap
+            for p in self.family.materialise(n):
+                h = _merged_rows(p)
+                key = ("costs", h.tobytes())
+                if key in store or key in seen or len(h) <= MIN_PLANES or not (reduced or len(h) > MAX_POLY_PLANES):
+                    continue
+                seen.add(key)
+                todo.append((key, h, np.asarray(p.vertices, np.float64)))
+        if len(todo) < 2:
+            return
+        chunks = _split(list(range(len(todo))), [float(len(h)) ** 2 for _, h, _ in todo], self.workers)
+        results = self._fork(_costs_chunk, chunks[1:], dict(costs=[(h, v) for _, h, v in todo]),
+                             lambda: _costs_chunk(chunks[0]), None, None)
+        for k, costs in zip([k for c in chunks for k in c], results):
+            store[todo[k][0]] = costs
+
+    def _fork(self, fn, args, shared: dict, here: Callable, report, sizes):
+        """``here()`` in this process while ``fn(a)`` runs for each of ``args`` in forked workers (reading
+        ``shared``); the concatenated results, this process's first."""
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        args = list(args)
+        if not args:
+            return here()
+        _FORKED.clear()
+        _FORKED.update(shared)
+        try:
+            with ProcessPoolExecutor(len(args), mp_context=mp.get_context("fork")) as ex:
+                futs = [ex.submit(fn, a) for a in args]
+                out = list(here())
+                finished = sizes[0] if sizes else 0
+                for f, size in zip(futs, (sizes or [0] * (len(args) + 1))[1:]):
+                    out += f.result()
+                    finished += size
+                    if report:
+                        report(finished)
+        finally:
+            _FORKED.clear()
+        return out
+
+
+def _split(items: list, weights: list[float], parts: int) -> list[list]:
+    """``items`` in their order cut into at most ``parts`` contiguous runs of about equal weight (none empty)."""
+    parts = max(1, min(parts, len(items)))
+    total = sum(weights) or 1.0
+    out, run, acc = [], [], 0.0
+    for item, w in zip(items, weights):
+        run.append(item)
+        acc += w
+        if len(out) < parts - 1 and acc >= total * (len(out) + 1) / parts:
+            out.append(run)
+            run = []
+    if run:
+        out.append(run)
+    return out
 
 
 def impossible_budget_message(family: CoverFamily, budget: Budget) -> str:

@@ -357,7 +357,7 @@ def test_a_rate_miss_does_not_end_the_search(monkeypatch):
     assert [(c.n, c.max_normals) for c in out if c.meets_rate] == [(5, None), (26, None), (20, 8), (50, 8)]
 
 
-def test_a_rate_miss_caps_the_planes_of_every_n(monkeypatch):
+def test_a_rate_miss_caps_the_planes_of_every_n():
     """Regression: when no candidate met the rate, the first halved n that met it (n = 1) ended the search:
     the 150k-splat room at 2.5 cm got one polytope (conservativeness 3.94) where n = 3 and n = 14 with their
     half-planes capped met the rate at 1.04. Every n realised is now tried with the cap, largest first."""
@@ -375,13 +375,52 @@ def test_a_rate_miss_caps_the_planes_of_every_n(monkeypatch):
 
     asked = []
 
-    def fake_realise_all(family, budget, pairs, *a, **k):
+    def fake_realise_all(budget, pairs, *a, **k):
         (n, _), = pairs
         asked.append((n, budget.max_halfplanes))
         return [C(n, None, budget.rate_cycles / 2, 1.0 + 0.001 * n, False)]
 
-    monkeypatch.setattr(sel, "_realise_all", fake_realise_all)
     done = [C(n, None, 1e9, c, m) for n, c, m in [(1, 3.94, True), (3, 1.044, False), (14, 1.038, False)]]
-    out = sel._tightened(None, Budget(65536, None, 67200.0, 0.3), done, None, 1.0, 0)
+    out = sel._tightened(Budget(65536, None, 67200.0, 0.3), done, fake_realise_all)
     assert [n for n, _ in asked] == [14, 3, 1] and all(cap >= 4 * n for n, cap in asked)
     assert {c.n for c in out if c.meets_rate and c.conservativeness < 1.1} >= {3, 14}
+
+
+def test_the_selection_does_not_depend_on_the_workers(built4, monkeypatch):
+    """The drop costs computed in forked workers and the candidates realised there give the same
+    candidates, bit for bit, as one process (every family counts as large here)."""
+    from polycc.budget import select as sel
+    from polycc.cover.family import CoverFamily
+
+    fam = CoverFamily.load(built4 / "out4")
+    monkeypatch.setattr(sel, "PARALLEL_MIN_POLYTOPES", 1)
+    runs = [select(fam, Budget(3 * 1024), mc_samples=5000, normal_caps=(None, 24, 12), workers=w) for w in (1, 2, 3)]
+    ref = runs[0][1]
+    assert any(c.dropped for c in ref) and any(c.max_normals is not None for c in ref)  # reduced, capped: real work
+    for best, cands, _ in runs[1:]:
+        assert (best.n, best.max_normals) == (runs[0][0].n, runs[0][0].max_normals)
+        assert [(c.n, c.max_normals, c.dropped, c.bytes, c.conservativeness) for c in cands] == [
+            (c.n, c.max_normals, c.dropped, c.bytes, c.conservativeness) for c in ref]
+        for a, b in zip(cands, ref):
+            assert all(np.array_equal(x, y) for x, y in zip(a.packed.polytopes(), b.packed.polytopes()))
+
+
+def test_capped_tables_are_skipped_only_where_the_uncapped_neighbours_miss_the_rate():
+    import types
+
+    from polycc.budget.select import _capped_worth_trying
+
+    def c(n, meets):
+        return types.SimpleNamespace(n=n, meets_rate=meets)
+
+    rate = Budget(65536, None, 67200.0, 0.3)
+    done = [c(10, False), c(26, True), c(52, False), c(105, False), c(630, False)]
+    assert _capped_worth_trying(30, done, rate)  # 26 below meets
+    assert _capped_worth_trying(26, done, rate)
+    assert _capped_worth_trying(20, done, rate)  # 26 above meets
+    assert not _capped_worth_trying(60, done, rate)  # 52 and 105 miss
+    assert not _capped_worth_trying(1014, done, rate)  # above everything: 630 misses
+    assert _capped_worth_trying(5, [c(10, True)], rate)
+    assert _capped_worth_trying(60, done, Budget(65536))  # no rate budget: always
+    assert _capped_worth_trying(60, done, Budget(65536, None, 67200.0, None))  # no index: the rate caps planes
+    assert _capped_worth_trying(60, [], rate)
