@@ -91,6 +91,7 @@ static uint16_t pRateHz;
 static float lPsi, lUx, lUy, lUz;
 static uint8_t lActive, lStatus;
 static uint32_t lEvalUs;
+static uint32_t lLate; /* app ticks that started more than one RTOS tick after their scheduled wake */
 static uint16_t lRate;
 
 /* ---- state ---- */
@@ -829,6 +830,9 @@ void appMain(void)
     for (;;) {
         TickType_t period = (TickType_t)polycc_app_tick();
         vTaskDelayUntil(&lastWake, period);
+        if ((TickType_t)(xTaskGetTickCount() - lastWake) > 1u) {
+            ++lLate; /* woke late: higher-priority work, an overrun, or (SITL) a starved host */
+        }
     }
 }
 
@@ -895,6 +899,9 @@ LOG_ADD(LOG_UINT32, evalUs, &lEvalUs)
 LOG_ADD(LOG_UINT8, status, &lStatus)
 /** @brief Loop rate in use, Hz (rateHz, lowered until the scene's certified worst case fits half a tick) */
 LOG_ADD(LOG_UINT16, rate, &lRate)
+/** @brief App ticks since boot that started more than one RTOS tick after their scheduled time (0 on an idle
+ * vehicle; in SITL, a host that starves the firmware) */
+LOG_ADD(LOG_UINT32, late, &lLate)
 /** @brief Swarm: neighbours in the table (reports received over the app channel) */
 LOG_ADD(LOG_UINT8, nNbr, &lNbr)
 /** @brief Swarm: P2P neighbour records taken into the table (wraps) */

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from polycc.budget.cycle_model import SHIELD_PERIOD_TICKS
 from polycc.cli.argtypes import add_point_option, number
 from polycc.cli.plan import add_plan_options
 from polycc.cli.scene_args import (
@@ -19,9 +18,8 @@ from polycc.cli.scene_args import (
     resolve_scene_settings,
 )
 from polycc.errors import PolyccError
+from polycc.sim.firmware.flights import SHIELD_HZ, STARVED_SHARE
 
-SHIELD_HZ = 1000.0 / SHIELD_PERIOD_TICKS  # the shield's decisions per second (1 ms ticks)
-STARVED_SHARE = 0.9  # fewer decisions than this share of SHIELD_HZ: the app task was starved (a warning)
 HELP = "fly the Crazyflie app (same C code, host build) through the scene and check clearance"
 
 
@@ -163,7 +161,8 @@ def _fly_firmware(args, header: Path, sim, scene, cfg, pairs, plans, flown, out:
         e = t.extra or {}
         say(f"{'ok' if t.success else t.outcome}, {t.time_s:.1f} s simulated, RTF {e.get('rtf') or 0:.2f}, "
             f"{'landed' if e.get('landed') else 'NOT landed'} (touchdown {e.get('touchdown_ms', 0):.2f} m/s)"
-            + (", flown again after a SITL hang" if e.get("sitl_reruns") else "")
+            + (f", flown again ({'; '.join(e.get('sitl_rerun_reasons') or ['a SITL hang'])})"
+               if e.get("sitl_reruns") else "")
             + (f", logs {e['run_dir']}" if e.get("run_dir") else ""))
         trials.append(t)
     return trials

@@ -100,6 +100,8 @@ def _start_log(scf, log: dict):
         lc.add_variable(n, "float")
     lc.add_variable("polycc.status", "uint8_t")
     lc.add_variable("polycc.psi", "float")
+    lc.add_variable("polycc.late", "uint32_t")
+    lc.add_variable("polycc.rate", "uint16_t")
     lc.data_received_cb.add_callback(lambda ts, data, conf: log.update(data))
     scf.cf.log.add_config(lc)
     lc.start()
@@ -158,10 +160,14 @@ def full_flight(uri, world, arena) -> dict:
         with Recorder(world, log) as rec:
             out["took_off"] = _takeoff(cf, world, rec)
             _goal(cf, arena["goal"])
-            rec.mark("enable")
+            t_en = rec.mark("enable")
+            late0 = int(log.get("polycc.late", 0))
             _set(cf, "polycc.enable", 1)
             out["arrived"] = world.wait_until(lambda: math.dist(world.truth()[0], arena["goal"]) < 0.1, 40.0)
             t_dis = rec.mark("disable")
+            # the app's ticks that woke late while it flew, as a share of its ticks (0 unless the host starved it)
+            ticks = max((t_dis - t_en) * float(log.get("polycc.rate", 0) or 1), 1.0)
+            out["late_share"] = (int(log.get("polycc.late", 0)) - late0) / ticks
             z_dis = world.truth()[0][2]
             _set(cf, "polycc.enable", 0)
             world.sleep(3.0)

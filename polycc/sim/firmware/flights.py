@@ -47,6 +47,16 @@ LOG_VARS = (("stateEstimate.x", "float"), ("stateEstimate.y", "float"), ("stateE
 # controller.h: AutoSelect, PID, Mellinger, INDI, Brescianini, Oot; upstream has Lee before Oot: 6)
 SHIELD_LOGS = ("decisions", "backups", "infeasible", "manual", "landings", "escapes")
 SITL_OOT_CONTROLLER = 5
+SHIELD_HZ = 1000.0 / cycle_model.SHIELD_PERIOD_TICKS  # the shield's decisions per second (1 ms ticks)
+STARVED_SHARE = 0.9  # fewer shield decisions than this share of SHIELD_HZ per flown second: the app was starved
+STARVED_RERUNS = 2   # a starved trial is flown again at most this many times
+
+
+def decisions_per_s(trial: Trial) -> float | None:
+    """The shield's decisions per flown second of a trial (None without the shield)."""
+    if not trial.shield or not trial.time_s:
+        return None
+    return trial.shield["decisions"] / trial.time_s
 
 
 class FirmwareSimulator:
@@ -71,16 +81,37 @@ class FirmwareSimulator:
         self.toc_cache = None
 
     def fly(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
-        """One trial on a fresh SITL instance. A SITL that hangs (:class:`SitlStall`: cf2 stops taking ticks
-        with both processes alive; seen once in ~30 CI trials, root cause open, its diagnostics are in the
-        message) is reported and the trial is flown once more from scratch; ``extra["sitl_reruns"]`` counts it."""
-        try:
-            trial = self._fly_once(start, goal, cfg, waypoints)
-            trial.extra["sitl_reruns"] = 0
-        except SitlStall as exc:
-            self.say(f"{exc}; the simulator hung, not the flight: flying this trial again on a fresh instance")
-            trial = self._fly_once(start, goal, cfg, waypoints)
-            trial.extra["sitl_reruns"] = 1
+        """One trial on a fresh SITL instance, flown again on a fresh instance when the simulator, not the
+        flight, failed; ``extra["sitl_reruns"]`` counts the reruns and ``extra["sitl_rerun_reasons"]`` says why.
+
+        * A SITL that hangs (:class:`SitlStall`: cf2 stops taking ticks with both processes alive; seen once
+          in ~30 CI trials, root cause open, its diagnostics are in the message): once.
+        * A starved shield (fewer than :data:`STARVED_SHARE` of its :data:`SHIELD_HZ` decisions per flown
+          second): the host did not give the app task its CPU time, so late decisions were flown as brakes
+          and the trial is not what the M4 would fly (CI: 73 decisions/s at RTF 0.29, "stuck" in front of the
+          first hoop). Up to :data:`STARVED_RERUNS` times; the last trial is kept either way, and
+          `polycc sim` warns when it is still starved."""
+        reasons: list[str] = []
+        while True:
+            try:
+                trial = self._fly_once(start, goal, cfg, waypoints)
+            except SitlStall as exc:
+                if any(r.startswith("hung") for r in reasons):
+                    raise
+                self.say(f"{exc}; the simulator hung, not the flight: flying this trial again on a fresh instance")
+                reasons.append("hung")
+                continue
+            rate = decisions_per_s(trial)
+            if rate is not None and rate < STARVED_SHARE * SHIELD_HZ and \
+                    sum(r.startswith("starved") for r in reasons) < STARVED_RERUNS:
+                self.say(f"the shield decided only {rate:.0f} times per flown second of its {SHIELD_HZ:.0f} (RTF "
+                         f"{trial.extra.get('rtf') or 0:.2f}): the host starved the app task, so this flight is not "
+                         "what the M4 would fly; flying this trial again on a fresh instance")
+                reasons.append(f"starved ({rate:.0f} decisions/s)")
+                continue
+            break
+        trial.extra["sitl_reruns"] = len(reasons)
+        trial.extra["sitl_rerun_reasons"] = reasons
         return trial
 
     def _fly_once(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
