@@ -16,7 +16,7 @@ from polycc.onboard.app import STATUS_NAMES, app_rate_hz
 from polycc.sim.app_ffi import SRC, AppSim
 
 LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2),
-            ("nNbr", 1), ("p2pRx", 2), ("p2pTx", 2), ("p2pDrop", 2)]
+            ("late", 3), ("nNbr", 1), ("p2pRx", 2), ("p2pTx", 2), ("p2pDrop", 2)]
 # PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09
 PARAMS = [("enable", 0x08), ("goalX", 0x06), ("goalY", 0x06), ("goalZ", 0x06), ("vmax", 0x06), ("beta", 0x06),
           ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09), ("swarmV", 0x06), ("swarmN", 0x08),
