@@ -183,11 +183,22 @@ def reduce_planes(
     return out, added
 
 
+def costs_key(planes: np.ndarray) -> tuple:
+    """The key of a polytope's drop costs in a ``cost_cache`` (its float64 planes, as the reduction sees them)."""
+    return ("costs", np.asarray(planes, np.float64).tobytes())
+
+
+def all_drop_costs(planes: np.ndarray, interior: np.ndarray, volume: float) -> list[float]:
+    """Drop cost of every plane of a polytope (``interior`` its vertices' mean, ``volume`` their hull's), as
+    the reduction computes them; what a caller may precompute into a ``cost_cache`` under :func:`costs_key`."""
+    return [drop_cost(planes, j, interior, volume) for j in range(len(planes))]
+
+
 def _costs0(store: dict):
     """Drop costs of a polytope's original planes, memoised in ``store`` by the planes' bytes."""
     def costs0(planes, interior, volume):
-        key = ("costs", planes.tobytes())
+        key = costs_key(planes)
         if key not in store:
-            store[key] = [drop_cost(planes, j, interior, volume) for j in range(len(planes))]
+            store[key] = all_drop_costs(planes, interior, volume)
         return store[key]
     return costs0

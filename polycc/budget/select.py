@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from polycc.budget.cycle_model import _leaf_cost, worst_cycles
-from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, reduce_planes
+from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, costs_key, reduce_planes
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
@@ -181,10 +181,7 @@ def realise(family: CoverFamily, n: int, max_normals: int | None, budget: Budget
     verts = [p.vertices for p in polys]
     # Merge the planes that pack_scene would store as one (same snapped normal) before reducing,
     # so that the capacity is spent on planes that are really stored.
-    rows = []
-    for p in polys:
-        _, first = np.unique(normal_keys(p.halfplanes), return_index=True)
-        rows.append(p.halfplanes[np.sort(first)])
+    rows = [_merged_rows(p) for p in polys]
     for _ in range(8):  # pack_scene may close a snapped polytope with extra box planes, or the index may not
         # fit beside the planes: then retry tighter
         if cap < MIN_PLANES * n:
@@ -470,16 +467,11 @@ def _merged_rows(p) -> np.ndarray:
 
 
 def _costs_chunk(idx: list[int]) -> list[list[float]]:
-    from polycc.budget.reduce import drop_cost
+    from polycc.budget.reduce import all_drop_costs
     from polycc.geometry.halfplanes import polytope_volume
 
     todo = _FORKED["costs"]
-    out = []
-    for k in idx:
-        h, v = todo[k]
-        c, vol = v.mean(axis=0), polytope_volume(v)
-        out.append([drop_cost(h, j, c, vol) for j in range(len(h))])
-    return out
+    return [all_drop_costs(todo[k][0], todo[k][1].mean(axis=0), polytope_volume(todo[k][1])) for k in idx]
 
 
 def _group_forked(g: int) -> list[Candidate]:
@@ -539,7 +531,7 @@ class _Realiser:
             reduced = self.counts[n] > 0.8 * budget.capacity(n, t)  # the index's bytes may force it near the cap
             for p in self.family.materialise(n):
                 h = _merged_rows(p)
-                key = ("costs", h.tobytes())
+                key = costs_key(h)
                 if key in store or key in seen or len(h) <= MIN_PLANES or not (reduced or len(h) > MAX_POLY_PLANES):
                     continue
                 seen.add(key)
