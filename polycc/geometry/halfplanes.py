@@ -61,6 +61,10 @@ def chebyshev_centre(h: np.ndarray) -> tuple[np.ndarray, float]:
 def _intersection(h: np.ndarray, interior, min_gamma: float, max_reach: float):
     """qhull's half-space intersection of ``{n . p <= d}`` and the interior point used, or None."""
     h = np.asarray(h, np.float64)
+    if interior is not None:
+        r = _intersection_certified(h, np.asarray(interior, np.float64), min_gamma, max_reach)
+        if r is not False:
+            return r
     if not is_bounded(h[:, :3], min_gamma):
         return None
     if interior is None:
@@ -78,6 +82,43 @@ def _intersection(h: np.ndarray, interior, min_gamma: float, max_reach: float):
     if len(v) == 0 or not np.all(np.isfinite(v)) or np.abs(v - interior).max() > max_reach:
         return None
     return hs, interior
+
+
+GAMMA_SAFETY = 2.0  # the certified bound must beat min_gamma by this factor (qhull's rounding is ~1e-15)
+
+
+def _intersection_certified(h: np.ndarray, c: np.ndarray, min_gamma: float, max_reach: float):
+    """:func:`_intersection` without the separate :func:`is_bounded` hull when the intersection itself
+    proves it (the result is then the same); False when it does not, and the caller runs both.
+
+    With ``c`` strictly inside, the polytope is bounded iff the origin is strictly inside qhull's dual hull
+    (of the points ``n_l / h_l``, ``h_l = d_l - n_l . c`` for unit ``n_l``, which positively span R^3 iff
+    the normals do). Then every vertex lies within ``R = max |v - c|`` of ``c``, and for any unit u the
+    point ``c + R' u`` (R' > R) is outside, so some ``n_l . u > h_l / R'``: gamma >= min_l h_l / R. When
+    that bound clears ``min_gamma`` (by :data:`GAMMA_SAFETY`), :func:`is_bounded` is True and qhull's
+    intersection from ``c`` is the one it would compute next. Saves a third of a drop cost."""
+    if len(h) < MIN_PLANES:
+        return False
+    norms = np.linalg.norm(h[:, :3], axis=1)
+    if not np.all(norms > 0):
+        return False
+    depth = (h[:, 3] - h[:, :3] @ c) / norms
+    if not depth.min() > 0:
+        return False
+    try:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            hs = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], c)
+    except (QhullError, ValueError):
+        return False
+    if not hs.dual_equations[:, 3].max() < 0:
+        return False
+    v = hs.intersections
+    if len(v) == 0 or not np.all(np.isfinite(v)):
+        return False
+    radius = float(np.sqrt(((v - c) ** 2).sum(axis=1).max()))
+    if not depth.min() >= GAMMA_SAFETY * min_gamma * radius:
+        return False
+    return None if np.abs(v - c).max() > max_reach else (hs, c)
 
 
 def polytope_vertices(h: np.ndarray, interior: np.ndarray | None = None, min_gamma: float = 1e-9,
@@ -110,6 +151,43 @@ def polytope_vertices_volume(h: np.ndarray, interior: np.ndarray | None = None, 
 
 
 def _dual_volume(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> float | None:
+    """Volume from qhull's dual (see :func:`polytope_vertices_volume`), None if a face is degenerate.
+
+    When every vertex lies on exactly three planes (qhull's dual facets are triangles, the usual case),
+    each pair of planes of a vertex is an edge of the polytope shared by exactly two vertices, and the
+    pyramid over each face is a fan of tetrahedra (c, face mean, edge): no angular sort. Otherwise
+    :func:`_dual_volume_sorted`."""
+    try:
+        f = np.asarray(facets, np.int64)
+    except ValueError:  # a vertex on four or more planes: faces in angular order instead
+        return _dual_volume_sorted(facets, v, c, planes)
+    if f.ndim != 2 or f.shape[1] != 3:
+        return _dual_volume_sorted(facets, v, c, planes)
+    m, n_planes = len(f), len(planes)
+    w = v - c
+    p = f.ravel()
+    cnt = np.bincount(p, minlength=n_planes)
+    if np.count_nonzero(cnt >= 3) < MIN_PLANES:
+        return None
+    g = np.stack([np.bincount(p, weights=np.repeat(w[:, k], 3), minlength=n_planes) for k in range(3)], axis=1)
+    g /= np.maximum(cnt, 1)[:, None]  # face means, relative to c
+    fs = np.sort(f, axis=1)
+    key = np.concatenate([fs[:, 0] * n_planes + fs[:, 1], fs[:, 0] * n_planes + fs[:, 2],
+                          fs[:, 1] * n_planes + fs[:, 2]])  # the edges (plane pairs) at each vertex
+    order = np.argsort(key, kind="stable")
+    if len(order) % 2:
+        return _dual_volume_sorted(facets, v, c, planes)
+    e0, e1 = order[0::2], order[1::2]
+    edge = key[e0]
+    if not np.array_equal(edge, key[e1]):  # not a closed triangulated surface: the general way
+        return _dual_volume_sorted(facets, v, c, planes)
+    cr = np.cross(w[e0 % m], w[e1 % m])
+    vol = np.abs(np.einsum("ij,ij->i", g[edge // n_planes], cr)).sum() + \
+        np.abs(np.einsum("ij,ij->i", g[edge % n_planes], cr)).sum()
+    return float(vol / 6.0)
+
+
+def _dual_volume_sorted(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> float | None:
     """Volume from qhull's dual (see :func:`polytope_vertices_volume`), None if a face is degenerate."""
     if not len(facets):
         return None

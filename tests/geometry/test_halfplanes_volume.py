@@ -82,3 +82,69 @@ def test_the_dual_path_is_taken():
     hs, c = _intersection(octa, np.zeros(3), 1e-9, 1e6)
     assert _dual_volume(hs.dual_facets, hs.intersections, c, hs.halfspaces) == pytest.approx(
         4.0 / 3.0)
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(4, 80), flat=st.floats(0.001, 1.0),
+       drop=st.integers(0, 8), min_gamma=st.sampled_from([1e-9, 1e-4, 1e-2, 0.2, 0.5]))
+def test_the_certified_intersection_is_the_checked_one(seed, n, flat, drop, min_gamma):
+    """Where the intersection proves boundedness itself (gamma >= min depth / max radius), the separate
+    is_bounded hull would have said True and qhull's intersection is the same; needles (flat up to 1e-3)
+    and planes dropped until unbounded included."""
+    from scipy.spatial import HalfspaceIntersection
+
+    from polycc.geometry.halfplanes import _intersection_certified, is_bounded
+
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3)) * np.array([1.0, flat, flat]) + rng.uniform(-3, 3, 3)
+    try:
+        h = hull_halfplanes(pts)
+    except Exception:
+        return
+    c = pts.mean(axis=0)
+    for _ in range(drop):
+        if len(h) > 4:
+            h = np.delete(h, int(rng.integers(len(h))), axis=0)
+    got = _intersection_certified(h, c, min_gamma, 1e6)
+    if got is False:
+        return  # not proved: the caller checks is_bounded as before
+    assert is_bounded(h[:, :3], min_gamma)
+    want = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], c).intersections
+    assert got is not None and np.array_equal(got[0].intersections, want)
+
+
+def _random_planes(rng, n: int) -> np.ndarray:
+    """n planes n . p <= d around the origin in general position (vertices on three planes)."""
+    u = rng.normal(size=(n, 3)) * rng.uniform(0.2, 2.0, 3)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return np.c_[u, rng.uniform(0.5, 2.0, n)]
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(4, 200), box=st.booleans())
+def test_the_fan_volume_is_the_sorted_faces_volume(seed, n, box):
+    """The edge-fan volume (vertices on three planes) against the angular sort of every face, on planes
+    in general position and with an axis box (vertices on more planes: the sorted path both times)."""
+    from polycc.geometry.halfplanes import _dual_volume, _dual_volume_sorted, _intersection
+
+    rng = np.random.default_rng(seed)
+    h = _random_planes(rng, n)
+    if box:
+        h = np.vstack([h, axis_box([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5])])
+    r = _intersection(h, np.zeros(3), 1e-9, 1e6)
+    if r is None:
+        return
+    hs, c = r
+    a = _dual_volume(hs.dual_facets, hs.intersections, c, hs.halfspaces)
+    b = _dual_volume_sorted(hs.dual_facets, hs.intersections, c, hs.halfspaces)
+    assert a == pytest.approx(b, rel=1e-12)
+    assert a == pytest.approx(ConvexHull(hs.intersections).volume, rel=1e-10)
+
+
+def test_planes_in_general_position_take_the_fan():
+    """Planes in general position: every vertex on three planes, so the fan path runs (not the sort)."""
+    from polycc.geometry.halfplanes import _intersection
+
+    h = _random_planes(np.random.default_rng(5), 60)
+    hs, _ = _intersection(h, np.zeros(3), 1e-9, 1e6)
+    assert np.asarray(hs.dual_facets).shape[1] == 3
