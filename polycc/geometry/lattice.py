@@ -111,11 +111,11 @@ def integer_planes(h: LatticeHull) -> tuple[np.ndarray, np.ndarray]:
     gcd = np.gcd.reduce(np.abs(n), axis=1)
     n = n // gcd[:, None]
     e = np.einsum("ij,ij->i", n, P[:, 0])
-    key = _unique_rows(np.column_stack([n, e]))
+    key = unique_rows(np.column_stack([n, e]))
     return key[:, :3], key[:, 3]
 
 
-def _unique_rows(a: np.ndarray) -> np.ndarray:
+def unique_rows(a: np.ndarray) -> np.ndarray:
     """``np.unique(a, axis=0)`` for a 2-D integer array (the same sorted rows), several times faster."""
     if len(a) < 2:
         return a.copy()
