@@ -384,7 +384,7 @@ class MergeStage:
 
     def __init__(self, nodes: StageNodes, voxels_local: np.ndarray, cost: str, refresh: str = "lazy",
                  ref_base: int = 0, cache: bool = True, entries: list | None = None,
-                 groups: np.ndarray | None = None):
+                 groups: np.ndarray | None = None, memo: dict | None = None):
         if refresh not in ("lazy", "eager"):
             raise ValueError(f"refresh must be 'lazy' or 'eager', not {refresh!r}")
         if cost not in MERGE_COSTS:
@@ -419,6 +419,9 @@ class MergeStage:
         self.leaf_cache: dict = {}
         self.patterns = nodes.pattern
         self.use_cache = cache and self.query.dense is not None
+        # pair evaluations by the two nodes' vertices: shared by the stages of one task over the same voxels
+        # (the costs of a tile start from the same leaves and mostly evaluate the same pairs)
+        self.memo = memo
         self.heap: list = []
         self.parent = list(range(M))
         self.adj: list = [set() for _ in range(m)] + [None] * max(m - 1, 0)
@@ -463,10 +466,21 @@ class MergeStage:
             hit = self.leaf_cache.get(key)
             if hit is not None:
                 return self._cost(hit[0], i, j), hit[0], None, True, hit[1]
+        mkey = None
+        if self.memo is not None:
+            mkey = (self.verts[i].tobytes(), self.verts[j].tobytes(), exact, options)
+            hit = self.memo.get(mkey)
+            if hit is not None:  # the same hull and count as computing them again (qhull is deterministic)
+                w, ex, occ = hit
+                if key is not None and ex:  # as if computed here: later translates of the pair reuse this W
+                    self.leaf_cache[key] = (w, occ)
+                return self._cost(w, i, j), (w if ex else None), None, ex, occ
         self.evals += 1
         h = lattice_hull(np.concatenate([self.verts[i], self.verts[j]]), options)
         if not exact and np.prod(bhi - blo) > BOUND_CELLS:
             w = max(h.volume - query.count(blo - self.off, bhi - 1 - self.off), 0.0)
+            if mkey is not None:
+                self.memo[mkey] = (w, False, None)
             return self._cost(w, i, j), None, h, False, None
         eq = h.equations
         if np.prod(bhi - blo) > BOUND_CELLS:
@@ -476,6 +490,8 @@ class MergeStage:
         w = max(h.volume - occ, 0.0)
         if key is not None:
             self.leaf_cache[key] = (w, occ)
+        if mkey is not None:
+            self.memo[mkey] = (w, True, occ)
         return self._cost(w, i, j), w, h, True, occ
 
     def find(self, a: int) -> int:

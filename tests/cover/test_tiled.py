@@ -101,6 +101,23 @@ def test_the_family_does_not_depend_on_the_workers():
     assert all(same(serial[c], par[c]) for c in serial)
 
 
+def test_the_costs_sharing_a_tile_memo_give_the_families_built_without_it(monkeypatch):
+    """A tile runs every merge cost over one memo of pair evaluations: both families are the ones each
+    cost builds alone, and the ones built with no memo at all (every pair evaluated)."""
+    import polycc.cover.tiled as tiled
+
+    grid = grid_of(scene_voxels())
+    kw = dict(tile_voxels=300, root_nodes=30)
+    both = build_families(grid, 1, ("delta", "paper"), **kw)
+    for cost in ("delta", "paper"):
+        assert same(both[cost], build_families(grid, 1, (cost,), **kw)[cost])
+    real = tiled.MergeStage
+    monkeypatch.setattr(tiled, "MergeStage", lambda *a, memo=None, **k: real(*a, **k))
+    bare = build_families(grid, 1, ("delta", "paper"), **kw)
+    assert all(same(both[c], bare[c]) for c in both)
+    assert both["paper"].meta["pair_evaluations"] < bare["paper"].meta["pair_evaluations"]
+
+
 def test_dask_local_cluster_gives_the_same_family():
     pytest.importorskip("dask.distributed")
     grid = grid_of(scene_voxels())
