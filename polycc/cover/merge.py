@@ -553,17 +553,24 @@ class MergeStage:
     def merge(self, i: int, j: int, occ: int | None) -> int:
         """Merge live nodes i and j into a new node with exact facets and vertices; its position."""
         k = self.m + self.t
-        h = lattice_hull(np.concatenate([self.verts[i], self.verts[j]]), b"Qt")
+        mkey = ("merge", self.verts[i].tobytes(), self.verts[j].tobytes()) if self.memo is not None else None
+        made = self.memo.get(mkey) if mkey is not None else None
+        if made is None or occ is None:
+            h = lattice_hull(np.concatenate([self.verts[i], self.verts[j]]), b"Qt")
+            made = (h.volume, h.vertices, integer_planes(h))
+            if mkey is not None:
+                self.memo[mkey] = made  # another cost's stage that merges the same two nodes makes the same node
         if occ is None:  # pragma: no cover - popped entries are exact
             blo, bhi = np.minimum(self.lo[i], self.lo[j]), np.maximum(self.hi[i], self.hi[j])
             eq = h.equations
             occ = self.query.count_inside(eq[:, :3], eq[:, 3] + eq[:, :3] @ self.off, blo - self.off,
                                           bhi - 1 - self.off)
+        volume, vertices, planes = made
         # the popped entry's count is that of the same hull (ranked with joggled qhull): reuse it
-        self.weight[k] = max(h.volume - occ, 0.0)
-        self.verts[k], self.volume[k] = h.vertices, h.volume
-        self.planes[k] = integer_planes(h)
-        self.lo[k], self.hi[k] = h.vertices.min(axis=0), h.vertices.max(axis=0)
+        self.weight[k] = max(volume - occ, 0.0)
+        self.verts[k], self.volume[k] = vertices, volume
+        self.planes[k] = planes
+        self.lo[k], self.hi[k] = vertices.min(axis=0), vertices.max(axis=0)
         self.alive[i] = self.alive[j] = False
         self.parent[i] = self.parent[j] = k
         self.live.remove(i)
