@@ -31,7 +31,7 @@ from typing import Callable
 
 import numpy as np
 
-from polycc.geometry.lattice import integer_planes, lattice_hull
+from polycc.geometry.lattice import integer_planes, lattice_hull, lattice_hull_facets
 
 MERGE_COSTS = ("paper", "delta")
 # Candidate boxes with more cells than this are first ranked by a lower bound of their
@@ -451,10 +451,10 @@ class MergeStage:
         return w if self.paper else w - self.weight[i] - self.weight[j]
 
     def evaluate(self, i: int, j: int, exact: bool = True, options: bytes = EVAL_QHULL):
-        """(cost, W, hull, exact, occupied) of merging nodes i and j; with ``exact=False`` a large
-        box gets a lower bound of the cost instead (W and occupied are None then). The hull is
-        None when the W of a leaf pair came from the cache. ``occupied`` is the number of occupied
-        voxels entirely inside the union's hull."""
+        """(cost, W, None, exact, occupied) of merging nodes i and j; with ``exact=False`` a large
+        box gets a lower bound of the cost instead (W and occupied are None then). ``occupied`` is
+        the number of occupied voxels entirely inside the union's hull. (The third slot once held
+        the hull; ranking needs only qhull's volume and facets, :meth:`merge` computes the exact hull.)"""
         lo, hi, query = self.lo, self.hi, self.query
         key = None
         blo, bhi = np.minimum(lo[i], lo[j]), np.maximum(hi[i], hi[j])
@@ -476,23 +476,25 @@ class MergeStage:
                     self.leaf_cache[key] = (w, occ)
                 return self._cost(w, i, j), (w if ex else None), None, ex, occ
         self.evals += 1
-        h = lattice_hull(np.concatenate([self.verts[i], self.verts[j]]), options)
-        if not exact and np.prod(bhi - blo) > BOUND_CELLS:
-            w = max(h.volume - query.count(blo - self.off, bhi - 1 - self.off), 0.0)
+        # qhull's volume and facets only (the hull's vertices are not needed to rank a pair)
+        volume, eq = lattice_hull_facets(np.concatenate([self.verts[i], self.verts[j]]), options)
+        ext = bhi - blo
+        big = int(ext[0]) * int(ext[1]) * int(ext[2]) > BOUND_CELLS
+        if not exact and big:
+            w = max(volume - query.count(blo - self.off, bhi - 1 - self.off), 0.0)
             if mkey is not None:
                 self.memo[mkey] = (w, False, None)
-            return self._cost(w, i, j), None, h, False, None
-        eq = h.equations
-        if np.prod(bhi - blo) > BOUND_CELLS:
+            return self._cost(w, i, j), None, None, False, None
+        if big:
             eq = np.unique(np.round(eq, 12), axis=0)  # qhull repeats coplanar facets
         # the query's coordinates are offset: A (q + off) + b = A q + (b + A off)
         occ = query.count_inside(eq[:, :3], eq[:, 3] + eq[:, :3] @ self.off, blo - self.off, bhi - 1 - self.off)
-        w = max(h.volume - occ, 0.0)
+        w = max(volume - occ, 0.0)
         if key is not None:
             self.leaf_cache[key] = (w, occ)
         if mkey is not None:
             self.memo[mkey] = (w, True, occ)
-        return self._cost(w, i, j), w, h, True, occ
+        return self._cost(w, i, j), w, None, True, occ
 
     def find(self, a: int) -> int:
         parent = self.parent

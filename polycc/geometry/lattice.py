@@ -36,7 +36,7 @@ CORNER_OFFSETS = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0
 def voxel_corner_points(idx: np.ndarray) -> np.ndarray:
     """(M, 3) int64 unique lattice corners of the voxels ``idx`` (N, 3)."""
     pts = (np.asarray(idx, np.int64)[:, None, :] + CORNER_OFFSETS[None]).reshape(-1, 3)
-    return np.unique(pts, axis=0)
+    return unique_rows(pts)  # np.unique(pts, axis=0), 5x faster on a cluster's corners
 
 
 @dataclass
@@ -92,6 +92,13 @@ def lattice_hull(points: np.ndarray, options: bytes = b"Qt") -> LatticeHull:
     used = np.zeros(len(pts), bool)  # the hull's vertices, in input order (as np.unique of the simplices)
     used[simplices.ravel()] = True
     return LatticeHull(volume, pts[used], equations, simplices, pts)
+
+
+def lattice_hull_facets(points: np.ndarray, options: bytes = b"Qt") -> tuple[float, np.ndarray]:
+    """(volume in cells, (F, 4) facet equations) of the hull of integer lattice points, as
+    :func:`lattice_hull` gives them, without its vertex bookkeeping (ranking merge pairs needs no more)."""
+    volume, _, equations = _qhull_raw(np.asarray(points, np.int64).astype(np.float64), options)
+    return volume, equations
 
 
 def integer_planes(h: LatticeHull) -> tuple[np.ndarray, np.ndarray]:
