@@ -451,10 +451,10 @@ class MergeStage:
         return w if self.paper else w - self.weight[i] - self.weight[j]
 
     def evaluate(self, i: int, j: int, exact: bool = True, options: bytes = EVAL_QHULL):
-        """(cost, W, None, exact, occupied) of merging nodes i and j; with ``exact=False`` a large
-        box gets a lower bound of the cost instead (W and occupied are None then). ``occupied`` is
-        the number of occupied voxels entirely inside the union's hull. (The third slot once held
-        the hull; ranking needs only qhull's volume and facets, :meth:`merge` computes the exact hull.)"""
+        """(cost, exact, occupied) of merging nodes i and j; with ``exact=False`` a large box gets a
+        lower bound of the cost instead (occupied is None then). ``occupied`` is the number of occupied
+        voxels entirely inside the union's hull. Ranking needs only qhull's volume and facets;
+        :meth:`merge` computes the exact hull of the pair it merges."""
         lo, hi, query = self.lo, self.hi, self.query
         key = None
         blo, bhi = np.minimum(lo[i], lo[j]), np.maximum(hi[i], hi[j])
@@ -465,7 +465,7 @@ class MergeStage:
             key = (self.patterns[i], self.patterns[j], (lo[j] - lo[i]).tobytes(), box.shape, box.tobytes())
             hit = self.leaf_cache.get(key)
             if hit is not None:
-                return self._cost(hit[0], i, j), hit[0], None, True, hit[1]
+                return self._cost(hit[0], i, j), True, hit[1]
         mkey = None
         if self.memo is not None:
             mkey = (self.verts[i].tobytes(), self.verts[j].tobytes(), exact, options)
@@ -474,7 +474,7 @@ class MergeStage:
                 w, ex, occ = hit
                 if key is not None and ex:  # as if computed here: later translates of the pair reuse this W
                     self.leaf_cache[key] = (w, occ)
-                return self._cost(w, i, j), (w if ex else None), None, ex, occ
+                return self._cost(w, i, j), ex, occ
         self.evals += 1
         # qhull's volume and facets only (the hull's vertices are not needed to rank a pair)
         volume, eq = lattice_hull_facets(np.concatenate([self.verts[i], self.verts[j]]), options)
@@ -484,7 +484,7 @@ class MergeStage:
             w = max(volume - query.count(blo - self.off, bhi - 1 - self.off), 0.0)
             if mkey is not None:
                 self.memo[mkey] = (w, False, None)
-            return self._cost(w, i, j), None, None, False, None
+            return self._cost(w, i, j), False, None
         if big:
             eq = np.unique(np.round(eq, 12), axis=0)  # qhull repeats coplanar facets
         # the query's coordinates are offset: A (q + off) + b = A q + (b + A off)
@@ -494,7 +494,7 @@ class MergeStage:
             self.leaf_cache[key] = (w, occ)
         if mkey is not None:
             self.memo[mkey] = (w, True, occ)
-        return self._cost(w, i, j), w, None, True, occ
+        return self._cost(w, i, j), True, occ
 
     def find(self, a: int) -> int:
         parent = self.parent
@@ -507,7 +507,7 @@ class MergeStage:
 
     def add_pair(self, a: int, b: int, batch: bool = False, exact: bool = False) -> None:
         a, b = (a, b) if a < b else (b, a)
-        c, _, _, ex, occ = self.evaluate(a, b, exact)
+        c, ex, occ = self.evaluate(a, b, exact)
         entry = (c, a, b, EXACT if ex else BOUND, occ)
         self.heap.append(entry) if batch else heapq.heappush(self.heap, entry)
         self.fresh.add((a, b))
@@ -540,10 +540,10 @@ class MergeStage:
                 if ex == EXACT:
                     return c, i, j, occ
                 if ex == STALE:  # handed on by a part's stage: evaluate it for these live nodes now
-                    c2, _, _, ex2, occ2 = self.evaluate(i, j, False)
+                    c2, ex2, occ2 = self.evaluate(i, j, False)
                     heapq.heappush(heap, (c2, i, j, EXACT if ex2 else BOUND, occ2))
                     continue
-                c2, _, _, _, occ2 = self.evaluate(i, j, True)
+                c2, _, occ2 = self.evaluate(i, j, True)
                 heapq.heappush(heap, (c2, i, j, EXACT, occ2))  # bound -> exact
                 continue
             if self.eager:
