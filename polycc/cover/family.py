@@ -33,6 +33,7 @@ H^n is indexing only, no geometry is recomputed.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -110,9 +111,14 @@ class CoverFamily:
         if path.is_dir() or path.suffix != ".npz":
             path = path / FILENAME
         path.parent.mkdir(parents=True, exist_ok=True)
-        arrays = {k: getattr(self, k) for k in _ARRAY_KEYS}
-        np.savez_compressed(path, format=np.array(FORMAT), meta=np.array(json.dumps(self.meta, sort_keys=True)),
-                            **arrays)
+        arrays = {"format": np.array(FORMAT), "meta": np.array(json.dumps(self.meta, sort_keys=True)),
+                  **{k: getattr(self, k) for k in _ARRAY_KEYS}}
+        # np.savez_compressed's own layout (one .npy per array in a deflated zip), at zlib level 1: it has no
+        # level argument, and its default 6 took 1.5 s of a 2.5 cm build's serial path for 20 % fewer bytes
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+            for k, a in arrays.items():
+                with z.open(k + ".npy", "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
         return path
 
     @staticmethod
