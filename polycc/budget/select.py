@@ -37,6 +37,7 @@ from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, costs_key, reduce_planes
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
+from polycc.geometry.lattice import unique_rows
 from polycc.geometry.union_volume import in_voxels, union_waste
 from polycc.onboard.index import build_index, grid_box, index_slack
 from polycc.onboard.layout import (
@@ -95,7 +96,14 @@ def normal_keys(planes: np.ndarray, grid: int = DEFAULT_NORMAL_GRID) -> np.ndarr
     g = np.gcd.reduce(np.abs(m), axis=1)
     g[g == 0] = 1
     m //= g[:, None]
-    _, ids = np.unique(m, axis=0, return_inverse=True)
+    lim = int(np.abs(m).max(initial=0))
+    base = 2 * lim + 1
+    if base ** 3 >= 2 ** 62:  # (unit normals: |m| <= grid, so only for a huge grid)
+        _, ids = np.unique(m, axis=0, return_inverse=True)
+        return ids.ravel()
+    # one int64 per row, ordered as the rows lexicographically: the same ids as np.unique(m, axis=0), 4x faster
+    code = ((m[:, 0] + lim) * base + (m[:, 1] + lim)) * base + (m[:, 2] + lim)
+    _, ids = np.unique(code, return_inverse=True)
     return ids.ravel()
 
 
@@ -156,7 +164,7 @@ class _Normals:
         self._cache: dict[int, int] = {}
         # planes per node once rows with the same snapped normal are merged (as pack_scene does)
         node = np.repeat(np.arange(len(family.plane_ptr) - 1), np.diff(family.plane_ptr))
-        pairs = np.unique(np.c_[node, self.keys], axis=0) if self.keys.size else np.zeros((0, 2), np.int64)
+        pairs = unique_rows(np.c_[node, self.keys]) if self.keys.size else np.zeros((0, 2), np.int64)
         self.merged_per_node = np.bincount(pairs[:, 0], minlength=len(family.plane_ptr) - 1)
 
     def count(self, n: int) -> int:

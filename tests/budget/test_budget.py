@@ -424,3 +424,25 @@ def test_capped_tables_are_skipped_only_where_the_uncapped_neighbours_miss_the_r
     assert _capped_worth_trying(60, done, Budget(65536))  # no rate budget: always
     assert _capped_worth_trying(60, done, Budget(65536, None, 67200.0, None))  # no index: the rate caps planes
     assert _capped_worth_trying(60, [], rate)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), rows=st.integers(1, 300), grid=st.sampled_from([4, 64, 4096]),
+       axis_share=st.floats(0.0, 1.0))
+def test_normal_keys_are_the_ids_of_np_unique_rows(seed, rows, grid, axis_share):
+    """normal_keys' one-int64-per-row ids are those of np.unique(axis=0) on the snapped, gcd-reduced normals
+    (the same labels, in the same order), with repeats and axis normals in the mix."""
+    from polycc.budget.select import normal_keys
+
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(rows, 3))
+    axis = rng.random(rows) < axis_share
+    n[axis] = np.eye(3)[rng.integers(0, 3, axis.sum())] * rng.choice([-1, 1], (axis.sum(), 1))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n = n[rng.integers(0, rows, rows)]  # repeats
+    planes = np.c_[n, rng.normal(size=rows)]
+    m = np.rint(planes[:, :3] * grid).astype(np.int64)
+    g = np.gcd.reduce(np.abs(m), axis=1)
+    g[g == 0] = 1
+    _, want = np.unique(m // g[:, None], axis=0, return_inverse=True)
+    assert np.array_equal(normal_keys(planes, grid), want.ravel())
