@@ -101,6 +101,53 @@ class _Stream:
             self.ops.append(self._pop(self.heap))
         return self.ops[i]
 
+    def upto(self, lam: float) -> tuple[int, float, bool]:
+        """(drops among the recorded pops before the first whose key exceeds ``lam``, that key, whether that pop
+        costs nothing more to read), from the record only: past it the next pop's key is the top of the heap
+        (inf at the end), and reading that pop is free only at the end or as the first pop (the heap is fresh
+        then: a drop, no cost recomputed): the flag says whether every pop the greedy may read is recorded.
+
+        The global greedy pops the heads of the streams cheapest first, so it takes a stream's i-th pop only
+        once every key up to it is due: when its last drop's key is at most ``lam``, it reads no pop of this
+        stream past the first one above ``lam`` (:meth:`extend` records up to that one)."""
+        drops = 0
+        for key, c in self.ops:
+            if key[0] > lam:
+                return drops, key[0], True
+            drops += c is not None
+        if not self.heap:
+            return drops, np.inf, True
+        return drops, self.heap[0][0], not self.ops and self.heap[0][0] > lam
+
+    def extend(self, lam: float) -> None:
+        """Record the pops up to and including the first whose key exceeds ``lam`` (or to the end)."""
+        i = 0
+        while True:
+            o = self.op(i)
+            if o is None or o[0][0] > lam:
+                return
+            i += 1
+
+    def pending(self, lam: float) -> list[float]:
+        """Keys of the entries still in the heap past the record above ``lam`` (stale costs are mostly
+        lower bounds of the costs they will be recomputed to): a guess of this stream's later pops."""
+        return [k[0] for k in self.heap if lam < k[0] < np.inf][: max(len(self.planes) - self.need, 0)]
+
+
+def polytope_stream(store: dict, h: np.ndarray, v: np.ndarray, per_polytope: int | None) -> _Stream:
+    """The recorded greedy of the polytope with planes ``h`` and vertices ``v`` (float64) under the
+    per-polytope limit, from ``store`` or made and kept there (``store`` is a reduction's ``cost_cache``)."""
+    key = stream_key(h, v, per_polytope)
+    if key not in store:
+        store[key] = _Stream(h, v.mean(axis=0), polytope_volume(v), key[3], _costs0(store))
+    return store[key]
+
+
+def stream_key(h: np.ndarray, v: np.ndarray, per_polytope: int | None) -> tuple:
+    """The key of a polytope's :class:`_Stream` in a ``cost_cache``."""
+    limit = per_polytope if per_polytope is not None and len(h) > per_polytope else None
+    return ("stream", np.asarray(h, np.float64).tobytes(), np.asarray(v, np.float64).tobytes(), limit)
+
 
 def reduce_planes(
     polytopes: list[tuple[np.ndarray, np.ndarray]], max_planes: int, per_polytope: int | None = None,
@@ -134,16 +181,8 @@ def reduce_planes(
     if max_planes < MIN_PLANES * len(polytopes) or cap < MIN_PLANES:
         return None
     store = {} if cost_cache is None else cost_cache
-    costs0 = _costs0(store)
-    streams = []
-    for h, v in polytopes:
-        h = np.asarray(h, np.float64)
-        v = np.asarray(v, np.float64)
-        limit = cap if len(h) > cap else None
-        key = ("stream", h.tobytes(), v.tobytes(), limit)
-        if key not in store:
-            store[key] = _Stream(h, v.mean(axis=0), polytope_volume(v), limit, costs0)
-        streams.append(store[key])
+    streams = [polytope_stream(store, np.asarray(h, np.float64), np.asarray(v, np.float64), cap)
+               for h, v in polytopes]
     # lower bound: essential planes (infinite drop cost) are never dropped
     if sum(s.need for s in streams) > max_planes:
         return None

@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from polycc.budget.cycle_model import _leaf_cost, worst_cycles
-from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, costs_key, reduce_planes
+from polycc.budget.reduce import MIN_GAMMA, MIN_PLANES, polytope_stream, reduce_planes, stream_key
 from polycc.cover.family import CoverFamily
 from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
@@ -464,6 +464,9 @@ def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, pr
 
 
 PARALLEL_MIN_POLYTOPES = 500  # a family whose sub-cover is smaller is selected in this process (forks do not pay)
+PREFILL_ROUNDS = 10  # rounds of :meth:`_Realiser._prefill` (each one fork of the workers)
+PREFILL_CHUNKS = 4  # chunks per worker in a prefill round
+PREFILL_OVERSHOOT = 1.25  # its guess of the next key takes this many more pending entries than drops missing
 _FORKED: dict = {}  # what forked workers read (set before the fork, so nothing big is pickled)
 
 
@@ -474,12 +477,19 @@ def _merged_rows(p) -> np.ndarray:
     return np.asarray(p.halfplanes[np.sort(first)], np.float64)
 
 
-def _costs_chunk(idx: list[int]) -> list[list[float]]:
-    from polycc.budget.reduce import all_drop_costs
-    from polycc.geometry.halfplanes import polytope_volume
-
-    todo = _FORKED["costs"]
-    return [all_drop_costs(todo[k][0], todo[k][1].mean(axis=0), polytope_volume(todo[k][1])) for k in idx]
+def _streams_chunk(idx: list[int], store: dict | None = None, work: list | None = None) -> list:
+    """Make or extend the recorded greedies ``work[k]`` = (key, planes, vertices, lam) for k in ``idx``, kept in
+    ``store`` (forked: both from ``_FORKED``; see :meth:`_Realiser._prefill`); returns them."""
+    if store is None:
+        store, work = _FORKED["store"], _FORKED["streams"]
+    out = []
+    for k in idx:
+        key, h, v, lam = work[k]
+        s = store[key] if key in store else polytope_stream(store, h, v, MAX_POLY_PLANES)
+        if lam is not None:
+            s.extend(lam)
+        out.append(s)
+    return out
 
 
 def _group_forked(g: int) -> list[Candidate]:
@@ -493,13 +503,17 @@ class _Realiser:
     greedy streams, polytope records, boxes: the candidates of a selection share most polytopes).
 
     A family of at least :data:`PARALLEL_MIN_POLYTOPES` polytopes is spread over ``workers`` processes:
-    first the drop costs of every polytope of the pairs that will be reduced (one qhull per plane, the bulk
-    of the work), balanced by planes squared, then the pairs themselves in contiguous runs of n
-    (neighbouring n share polytopes), each run's worker starting from the cache with those costs in it.
-    The workers are forked, so they read the family and the cache without a copy; this process runs one
-    share itself. The result does not depend on ``workers``: :func:`realise` is a pure function of its
-    pair, and the cache gives the same result bit for bit (the drop costs are computed by the same code
-    on the same float64 inputs)."""
+    first the recorded greedy of every polytope of the pairs that will be reduced, as far as their
+    reductions will read it (:meth:`_prefill`: one qhull per drop cost, the bulk of the work; each polytope
+    once, on whichever worker is free), then the pairs themselves in contiguous runs of n (neighbouring n
+    share polytopes), each run's worker starting from the cache with those records in it. The workers are
+    forked, so they read the family and the cache without a copy. The result does not depend on
+    ``workers``: :func:`realise` is a pure function of its pair, and the cache gives the same result bit for
+    bit (the records are computed by the same code on the same float64 inputs).
+
+    Before the prefill, the candidates' workers each extended the records they needed themselves: the
+    polytopes two runs share were reduced twice, and 2 workers took 44 s where one took 63 s (the 1.5M-splat
+    room at 2.5 cm); now 37.6 s, the same candidates bit for bit."""
 
     def __init__(self, family, normals, occ_vol, mc_samples, workers, counts):
         from polycc.parallel import available_cores
@@ -522,7 +536,7 @@ class _Realiser:
         if not self._parallel(pairs):
             return _realise_many(self.family, budget, pairs, before, self.occ_vol, self.mc_samples, report,
                                  caches=self.caches)
-        self._drop_costs(budget, pairs, before)
+        self._prefill(budget, pairs, before)
         groups = _split(pairs, [float(self.counts[n]) ** 1.5 for n, _ in pairs], self.workers)
         return self._fork(_group_forked, range(1, len(groups)), dict(
             run=dict(family=self.family, budget=budget, groups=groups, counts=before, occ_vol=self.occ_vol,
@@ -530,27 +544,80 @@ class _Realiser:
             lambda: _realise_many(self.family, budget, groups[0], before, self.occ_vol, self.mc_samples,
                                   report, caches=self.caches), report, [len(g) for g in groups])
 
-    def _drop_costs(self, budget, pairs, before) -> None:
-        """Fill the cache with the drop costs of every polytope the reduction of these pairs will need."""
+    def _prefill(self, budget, pairs, before) -> None:
+        """Fill the cache with the recorded greedy (:class:`polycc.budget.reduce._Stream`) of every polytope the
+        reductions of these pairs will read, as far as they will read it, computed polytope by polytope in
+        parallel (each once, however many candidates share it), so that the candidates replay them.
+
+        How far: a pair at n must drop about D = (its merged planes - the first phase's drops - its capacity)
+        planes in the global phase, and when every stream of H^n is recorded past key lam with at least D drops
+        at keys <= lam, its greedy reads nothing unrecorded (:meth:`~polycc.budget.reduce._Stream.upto`). lam
+        is raised in rounds, each guessed from the heaps' pending keys (mostly lower bounds, so a guess falls
+        short rather than far beyond); what is still missing after :data:`PREFILL_ROUNDS` rounds, or what a
+        tighter retry of a candidate needs, its worker computes on demand, as without the prefill."""
         store = self.caches.setdefault("drop_costs", {})
-        todo, seen = [], set()
-        for n in sorted({n for n, T in pairs}):
-            t = max(before[n] if T is None else min(T, before[n]) for m, T in pairs if m == n)
-            reduced = self.counts[n] > 0.8 * budget.capacity(n, t)  # the index's bytes may force it near the cap
-            for p in self.family.materialise(n):
-                h = _merged_rows(p)
-                key = costs_key(h)
-                if key in store or key in seen or len(h) <= MIN_PLANES or not (reduced or len(h) > MAX_POLY_PLANES):
+        need: dict[int, tuple[int, list]] = {}
+        todo: dict = {}
+        for n in sorted({n for n, _ in pairs}):
+            cap = budget.capacity(n, max(before[n] if T is None else min(T, before[n]) for m, T in pairs if m == n))
+            reduced = self.counts[n] > 0.8 * cap  # the index's bytes may force it near the cap
+            polys = self.family.materialise(n)
+            rows = [_merged_rows(p) for p in polys]
+            if not (reduced or any(len(h) > MAX_POLY_PLANES for h in rows)):
+                continue
+            keys = []
+            for p, h in zip(polys, rows):
+                v = np.asarray(p.vertices, np.float64)
+                key = stream_key(h, v, MAX_POLY_PLANES)
+                keys.append(key)
+                if key not in store:
+                    todo[key] = (key, h, v, None)
+            need[n] = (int(self.counts[n]) - cap, keys)
+        self._streams(list(todo.values()), [len(h) * (len(h) + 50.0) for _, h, _, _ in todo.values()])
+        lam = {n: -np.inf for n in need}
+        for _ in range(PREFILL_ROUNDS):
+            target: dict = {}
+            for n, (d, keys) in need.items():
+                streams = [store[k] for k in keys]
+                d -= sum(len(s.pre_costs) for s in streams)
+                got = sum(s.upto(lam[n])[0] for s in streams)
+                if got >= d:
                     continue
-                seen.add(key)
-                todo.append((key, h, np.asarray(p.vertices, np.float64)))
-        if len(todo) < 2:
+                guess = sorted(g for s in streams for g in s.pending(lam[n]) + [s.upto(lam[n])[1]] if g < np.inf)
+                if not guess:
+                    continue
+                lam[n] = guess[min(len(guess) - 1, int(PREFILL_OVERSHOOT * (d - got)))]
+                for k in keys:
+                    target[k] = max(target.get(k, -np.inf), lam[n])
+            work = [(k, None, None, t) for k, t in target.items() if not store[k].upto(t)[2]]
+            if not work:
+                break
+            self._streams(work, [(len(store[k].planes) + 50.0) * (1 + sum(e[0] <= t for e in store[k].heap))
+                                 for k, _, _, t in work])
+
+    def _streams(self, work: list, weights: list[float]) -> None:
+        """Run :func:`_streams_chunk` over ``work`` on ``workers`` forked processes and keep the results. The
+        work is cut into several chunks per worker, heaviest first by ``weights``, which the pool hands out as
+        workers come free: a qhull's cost grows with the planes, and the number of pops a stream needs is
+        only guessed, so fixed shares came out 1.4-2.4x apart."""
+        if not work:
             return
-        chunks = _split(list(range(len(todo))), [float(len(h)) ** 2 for _, h, _ in todo], self.workers)
-        results = self._fork(_costs_chunk, chunks[1:], dict(costs=[(h, v) for _, h, v in todo]),
-                             lambda: _costs_chunk(chunks[0]), None, None)
-        for k, costs in zip([k for c in chunks for k in c], results):
-            store[todo[k][0]] = costs
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        store = self.caches["drop_costs"]
+        order = sorted(range(len(work)), key=lambda k: -weights[k])
+        chunks = _split(order, [weights[k] for k in order], PREFILL_CHUNKS * self.workers)
+        _FORKED.clear()
+        _FORKED.update(store=store, streams=work)
+        try:
+            with ProcessPoolExecutor(min(self.workers, len(chunks)), mp_context=mp.get_context("fork")) as ex:
+                results = list(ex.map(_streams_chunk, chunks))
+        finally:
+            _FORKED.clear()
+        for chunk, streams in zip(chunks, results):
+            for k, st in zip(chunk, streams):
+                store[work[k][0]] = st
 
     def _fork(self, fn, args, shared: dict, here: Callable, report, sizes):
         """``here()`` in this process while ``fn(a)`` runs for each of ``args`` in forked workers (reading

@@ -426,6 +426,71 @@ def test_capped_tables_are_skipped_only_where_the_uncapped_neighbours_miss_the_r
     assert _capped_worth_trying(60, [], rate)
 
 
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), q=st.floats(0.0, 1.0), per_polytope=st.sampled_from([None, 12, 24]))
+def test_streams_recorded_past_a_key_serve_every_greedy_that_stops_below_it(seed, q, per_polytope):
+    """A greedy whose drops all have keys <= lam reads no pop of a stream past the first one above lam
+    (_Stream.extend records up to it): the selection's prefill relies on this to do the reductions' qhull work
+    in parallel. Same result as without the record, and not one pop computed on demand."""
+    from polycc.budget import reduce as red
+
+    rng = np.random.default_rng(seed)
+    polys = [random_hull(rng, n=int(rng.integers(8, 40))) for _ in range(int(rng.integers(1, 6)))]
+    store: dict = {}
+    streams = [red.polytope_stream(store, np.asarray(h, np.float64), np.asarray(v, np.float64), per_polytope)
+               for h, v in polys]
+    if not all(s.ok for s in streams):
+        return
+    keys = sorted(k[0] for s in streams for k in s.heap if np.isfinite(k[0]))
+    if not keys:
+        return
+    lam = keys[min(int(q * len(keys)), len(keys) - 1)] * (1 + 1e-9)  # between keys (no tie at lam)
+    for s in streams:
+        s.extend(lam)
+    recorded = [len(s.ops) for s in streams]
+    drops = sum(s.upto(lam)[0] for s in streams)
+    cap = sum(len(h) for h, _ in polys) - sum(len(s.pre_costs) for s in streams) - drops
+    got = red.reduce_planes(polys, cap, per_polytope, cost_cache=store)
+    assert [len(s.ops) for s in streams] == recorded  # nothing read past the record
+    want = reduce_planes(polys, cap, per_polytope)
+    assert (got is None) == (want is None)
+    if want is not None:
+        assert got[1] == want[1] and all(np.array_equal(a, b) for a, b in zip(got[0], want[0]))
+
+
+def test_the_prefill_records_what_the_first_reductions_read(built4, monkeypatch):
+    """After the selection's prefill (the streams made and extended on the workers), the first reduction of
+    every candidate replays recorded pops only: no drop cost is left for the candidates' workers to compute."""
+    from polycc.budget import reduce as red
+    from polycc.budget import select as sel
+    from polycc.cover.family import CoverFamily
+    from polycc.onboard.layout import MAX_POLY_PLANES
+
+    fam = CoverFamily.load(built4 / "out4")
+    budget = Budget(3 * 1024)
+    normals = sel._Normals(fam)
+    counts = plane_counts(fam, normals.merged_per_node)
+    ns, _ = sel.candidate_ns(fam, budget, normals.count, counts)
+    before = {n: normals.count(n) for n in ns}
+    r = sel._Realiser(fam, normals, 1.0, 5000, 2, counts)
+    r._prefill(budget, [(n, None) for n in ns], before)
+    store = r.caches["drop_costs"]
+    assert sum(len(s.ops) for k, s in store.items() if k[0] == "stream") > 0
+    computed = []
+    real = red.drop_cost
+    monkeypatch.setattr(red, "drop_cost", lambda *a: computed.append(1) or real(*a))
+    reduced = 0
+    for n in ns:
+        polys = fam.materialise(n)
+        rows = [sel._merged_rows(p) for p in polys]
+        cap = budget.capacity(n, before[n])
+        if sum(len(h) for h in rows) > cap:
+            reduced += 1
+            red.reduce_planes([(h, p.vertices) for h, p in zip(rows, polys)], cap, per_polytope=MAX_POLY_PLANES,
+                              cost_cache=store)
+    assert reduced >= 2 and not computed
+
+
 @settings(max_examples=50, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), rows=st.integers(1, 300), grid=st.sampled_from([4, 64, 4096]),
        axis_share=st.floats(0.0, 1.0))
