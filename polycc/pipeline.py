@@ -177,7 +177,7 @@ def _budget_and_write(scene_path, out, settings, options, budget, scene, occ, fa
     t = time.perf_counter()
     best, cands, binding = select(family, budget, mc_samples=options.mc_samples,
                                   progress=(lambda d, n: progress("budget", d, n)) if progress else None,
-                                  workers=None if options.dask else options.jobs)
+                                  workers=None if options.dask else options.jobs, stage_progress=progress)
     t_budget = time.perf_counter() - t
     us = cycle_model.estimate_us(best.packed, options.kappa)
     if progress:

@@ -322,6 +322,7 @@ def select(
     progress: Callable[[int, int], None] | None = None,
     normal_caps: tuple = NORMAL_CAPS,
     workers: int | None = None,
+    stage_progress: Callable[[str, int, int], None] | None = None,
 ) -> tuple[Candidate, list[Candidate], str]:
     """Best candidate, every evaluated candidate, and the name of the binding budget.
 
@@ -330,7 +331,8 @@ def select(
     candidates are realised first; a capped one is skipped when the uncapped candidates next to its n
     (below and above, where realised) all miss the rate budget (:func:`_capped_worth_trying`).
     ``workers``: local processes for a large family (None = every core); the result does not depend
-    on it."""
+    on it. ``stage_progress(stage, done, total)``: the parallel prefill's stages ("drop costs", then "pops"),
+    which come before the candidates' ``progress``."""
     occ_vol = len(family.grid_indices) * family.voxel_size**3
     normals = _Normals(family)
     counts = plane_counts(family, normals.merged_per_node)
@@ -344,6 +346,7 @@ def select(
             pairs.append((n, T))
     pairs = sorted(set(pairs), key=lambda p: (p[0], -1 if p[1] is None else -p[1]))
     realise_all = _Realiser(family, normals, occ_vol, mc_samples, workers, counts)
+    realise_all.stage_progress = stage_progress
     plain = [p for p in pairs if p[1] is None]
     step = (lambda base: (lambda d, _t: progress(base + d, len(pairs)))) if progress else (lambda base: None)
     done = realise_all(budget, plain, step(0))
@@ -522,6 +525,7 @@ class _Realiser:
         self.counts = counts  # merged half-planes of H^n
         self.workers = available_cores() if workers is None else max(1, int(workers))
         self.caches: dict = {}
+        self.stage_progress: Callable[[str, int, int], None] | None = None
 
     def _parallel(self, pairs) -> bool:
         import multiprocessing as mp
@@ -573,7 +577,9 @@ class _Realiser:
                 if key not in store:
                     todo[key] = (key, h, v, None)
             need[n] = (int(self.counts[n]) - cap, keys)
-        self._streams(list(todo.values()), [len(h) * (len(h) + 50.0) for _, h, _, _ in todo.values()])
+        say = self.stage_progress or (lambda *a: None)
+        self._streams(list(todo.values()), [len(h) * (len(h) + 50.0) for _, h, _, _ in todo.values()],
+                      lambda d, t: say("drop costs", d, t))
         lam = {n: -np.inf for n in need}
         for _ in range(PREFILL_ROUNDS):
             target: dict = {}
@@ -592,10 +598,11 @@ class _Realiser:
             work = [(k, None, None, t) for k, t in target.items() if not store[k].upto(t)[2]]
             if not work:
                 break
+            say("pops", 0, 1)
             self._streams(work, [(len(store[k].planes) + 50.0) * (1 + sum(e[0] <= t for e in store[k].heap))
                                  for k, _, _, t in work])
 
-    def _streams(self, work: list, weights: list[float]) -> None:
+    def _streams(self, work: list, weights: list[float], report: Callable[[int, int], None] | None = None) -> None:
         """Run :func:`_streams_chunk` over ``work`` on ``workers`` forked processes and keep the results. The
         work is cut into several chunks per worker, heaviest first by ``weights``, which the pool hands out as
         workers come free: a qhull's cost grows with the planes, and the number of pops a stream needs is
@@ -603,7 +610,7 @@ class _Realiser:
         if not work:
             return
         import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
+        from concurrent.futures import ProcessPoolExecutor, as_completed
 
         store = self.caches["drop_costs"]
         order = sorted(range(len(work)), key=lambda k: -weights[k])
@@ -612,7 +619,13 @@ class _Realiser:
         _FORKED.update(store=store, streams=work)
         try:
             with ProcessPoolExecutor(min(self.workers, len(chunks)), mp_context=mp.get_context("fork")) as ex:
-                results = list(ex.map(_streams_chunk, chunks))
+                futs = [ex.submit(_streams_chunk, c) for c in chunks]
+                finished = 0
+                for f in as_completed(futs):
+                    finished += len(chunks[futs.index(f)])
+                    if report:
+                        report(finished, len(work))
+                results = [f.result() for f in futs]
         finally:
             _FORKED.clear()
         for chunk, streams in zip(chunks, results):
