@@ -9,6 +9,13 @@ and the full rigid-body quadrotor), the go-to-goal app flown
   (the shield filters the app's setpoints; app radius 0.2 m so that the app's own first-order
   filter keeps clear of the shield's r + tube = 0.15 m).
 
+``--modes`` adds the sources of those two on their own and the shield around today's app, so that
+what the shield adds is measured against the same source:
+
+* ``nobrake``: the ``shield`` row's source alone (braking term compiled out, app radius 0.2 m, no shield);
+* ``app_r2``: today's app with radius 0.2 m (braking term on, no shield);
+* ``app_shield``: that app with the shield on (braking term on, app radius 0.2 m, shield r = 0.1 m).
+
 Columns: flights, goal reached, collisions (flights touching a ground-truth ellipsoid with the
 0.1 m radius), minimum clearance (exact distance minus 0.1 m), realized minus commanded barrier
 rate grad psi . (v - u) (Prop. 1 of seed 001; p1/p50/p99 over 100 Hz samples, m/s), jerk of the
@@ -59,9 +66,11 @@ def fly_cell(job: dict) -> dict:
     from polycc.sim.sitl import FlightConfig, Simulator
 
     t0 = time.perf_counter()
-    shield = job["mode"] == "shield"
-    sim = Simulator(job["header"], arena("demo"), brake=not shield)
-    cfg = FlightConfig(vmax=job["speed"], radius=0.2 if shield else RADIUS, clearance_radius=RADIUS, shield=shield,
+    mode = job["mode"]
+    shield = mode in ("shield", "app_shield")
+    sim = Simulator(job["header"], arena("demo"), brake=mode not in ("shield", "nobrake"))
+    cfg = FlightConfig(vmax=job["speed"], radius=RADIUS if mode == "app" else 0.2, clearance_radius=RADIUS,
+                       shield=shield,
                        shield_radius=RADIUS, shield_psi_cap=job["psi_cap"] if shield else 0.0,
                        shield_gains=job["gains"] if shield else None)
     trials = [sim.fly(s, g, job["dynamics"], cfg) for s, g in job["pairs"]]
@@ -158,6 +167,8 @@ def main() -> int:
     ap.add_argument("--psi-caps", default="0", help="shield cells per psi cap, m (0: off; e.g. 0,0.6)")
     ap.add_argument("--gains", default="4:4", help="shield cells per ECBF gains k1:k0 (1/s : 1/s^2; default 4:4, "
                                                    "the app's; e.g. 4:4,2:1)")
+    ap.add_argument("--modes", default="app,shield", help="comma list of app, shield, nobrake, app_r2, app_shield "
+                                                          "(module docstring)")
     ap.add_argument("--firmware", metavar="FWDIR", help="also fly the real firmware (CrazySim SITL tree or tarball)")
     ap.add_argument("--fw-pairs", type=int, default=5, help="with --firmware: pairs per speed and mode (default 5)")
     args = ap.parse_args()
@@ -178,10 +189,15 @@ def main() -> int:
         return firmware_main(args, header, pairs, budget)
     caps = [float(c) for c in args.psi_caps.split(",")]
     gains = [tuple(float(x) for x in g.split(":")) for g in args.gains.split(",")]
+    modes = args.modes.split(",")
+    unknown = set(modes) - {"app", "shield", "nobrake", "app_r2", "app_shield"}
+    if unknown:
+        ap.error(f"--modes: unknown {sorted(unknown)}")
     jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m, "psi_cap": c,
              "gains": k}
             for d in args.dynamics.split(",") for s in args.speeds.split(",")
-            for m, c, k in [("app", 0.0, None)] + [("shield", c, k) for c in caps for k in gains]]
+            for m, c, k in [(m, 0.0, None) for m in modes if m not in ("shield", "app_shield")]
+            + [(m, c, k) for m in modes if m in ("shield", "app_shield") for c in caps for k in gains]]
     t0 = time.perf_counter()
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:
