@@ -17,7 +17,7 @@ import math
 import struct
 from dataclasses import dataclass, field
 from fractions import Fraction
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -388,22 +388,44 @@ def snap_normal(n: np.ndarray, grid: int | None) -> tuple[tuple, np.ndarray]:
     entry); without, the float32 rounding of n is kept."""
     n = np.asarray(n, np.float64)
     if grid:
-        m = np.rint(n * grid).astype(np.int64)
-        g = math.gcd(math.gcd(int(abs(m[0])), int(abs(m[1]))), int(abs(m[2]))) or 1
-        m //= g
-        key = ("m", int(m[0]), int(m[1]), int(m[2]))
-        v = m / math.sqrt(float(m @ m))
-    else:
-        v = n / np.linalg.norm(n)
-        key = None
+        key = _lattice_keys(n[None, :], grid)[0]
+        return key, _lattice_normal(*key[1:]).copy()
+    return _unit_f32(n / np.linalg.norm(n))
+
+
+def snap_normals(n: np.ndarray, grid: int) -> tuple[list[tuple], np.ndarray]:
+    """:func:`snap_normal` of every row of ``n`` (H, 3) with a grid K: (keys, (H, 3) float32), the same
+    values, vectorised (a pack snaps every plane of every candidate; the exact check is made once per
+    lattice direction)."""
+    keys = _lattice_keys(np.asarray(n, np.float64), grid)
+    f = np.array([_lattice_normal(*k[1:]) for k in keys], np.float32).reshape(-1, 3)
+    return keys, f
+
+
+def _lattice_keys(n: np.ndarray, grid: int) -> list[tuple]:
+    """("m", m_x, m_y, m_z) per row: m = round(K n) divided by the gcd of its entries (1 if all 0)."""
+    m = np.rint(n * grid).astype(np.int64)
+    g = np.gcd.reduce(np.abs(m), axis=1)
+    m //= np.where(g == 0, 1, g)[:, None]
+    return [("m", a, b, c) for a, b, c in m.tolist()]
+
+
+@lru_cache(maxsize=1 << 16)
+def _lattice_normal(a: int, b: int, c: int) -> np.ndarray:
+    """m / |m| for the integer direction m = (a, b, c), as :func:`_unit_f32` rounds it (read-only)."""
+    m = np.array([a, b, c], np.int64)
+    f = _unit_f32(m / math.sqrt(float(m @ m)))[1]
+    f.flags.writeable = False
+    return f
+
+
+def _unit_f32(v: np.ndarray) -> tuple[tuple, np.ndarray]:
+    """(("f", float32 bits), float32 v shrunk toward 0 until |f|^2 <= 1 exactly (rational check))."""
     f = v.astype(np.float32)
-    # shrink toward 0 until |f|^2 <= 1 exactly (rational check)
     while sum(Fraction(float(x)) ** 2 for x in f) > 1:
         i = int(np.argmax(np.abs(f)))
         f[i] = np.nextafter(f[i], np.float32(0))
-    if key is None:
-        key = ("f",) + tuple(int(b) for b in f.view(np.uint32))
-    return key, f
+    return ("f",) + tuple(int(b) for b in f.view(np.uint32)), f
 
 
 def _outward_offsets(nq: np.ndarray, verts: np.ndarray, q: float) -> np.ndarray:
@@ -578,10 +600,15 @@ def _normal_table(rows: list[np.ndarray], grid: int | None, max_normals: int | N
             table[key] = len(tvals)
             tvals.append(f)
     per_poly = []
+    if grid and rows:
+        keys, fs = snap_normals(np.concatenate([h[:, :3] for h in rows]), grid)
+        snapped = iter(zip(keys, fs))
+    else:
+        snapped = (snap_normal(n, grid) for h in rows for n in h[:, :3])
     for h in rows:
         idx = []
-        for n in h[:, :3]:
-            key, f = snap_normal(n, grid)
+        for _ in range(len(h)):
+            key, f = next(snapped)
             if key not in table:
                 table[key] = len(tvals)
                 tvals.append(f)

@@ -233,3 +233,35 @@ def test_over_elongated_polytope_is_closed_by_its_box():
     verts = polytope_vertices(sliver)
     assert np.all(verts @ stored[:, :3].T <= stored[:, 3] + 1e-12)  # still contains the exact polytope
     assert sc.polys["inv_gamma"][0] <= 2.0  # sqrt(3) plus the rounding
+
+
+def _snap_by_definition(n, grid):
+    """snap_normal as first written (the specification): m = round(K n) / gcd, m / |m| in float64, then
+    float32 shrunk toward 0 until |f|^2 <= 1 in exact rational arithmetic."""
+    m = np.rint(np.asarray(n, np.float64) * grid).astype(np.int64)
+    g = int(np.gcd.reduce(np.abs(m))) or 1
+    m //= g
+    f = (m / np.sqrt(float(m @ m))).astype(np.float32)
+    while sum(Fraction(float(x)) ** 2 for x in f) > 1:
+        i = int(np.argmax(np.abs(f)))
+        f[i] = np.nextafter(f[i], np.float32(0))
+    return ("m", *map(int, m)), f
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-1, 1, allow_nan=False)] * 3).filter(lambda t: sum(x * x for x in t) > 1e-3),
+                min_size=1, max_size=30), st.sampled_from([16, 4096]))
+def test_vectorised_snapping_is_the_scalar_definition(rows, grid):
+    """Regression for the speed-up of the normal table (one exact check per lattice direction, cached): every
+    key and float32 bit pattern is the definition's, and |f|^2 <= 1 holds exactly."""
+    from polycc.onboard.layout import snap_normal, snap_normals
+
+    n = np.array(rows, np.float64)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    keys, f = snap_normals(n, grid)
+    for i, row in enumerate(n):
+        key, want = _snap_by_definition(row, grid)
+        assert keys[i] == key == snap_normal(row, grid)[0]
+        assert f[i].view(np.uint32).tolist() == want.view(np.uint32).tolist()
+        assert snap_normal(row, grid)[1].view(np.uint32).tolist() == want.view(np.uint32).tolist()
+        assert sum(Fraction(float(x)) ** 2 for x in f[i]) <= 1
