@@ -78,37 +78,57 @@ def _face_bound(n: np.ndarray, d: np.ndarray, e: np.ndarray, delta: float) -> fl
 _POS_MAX = 1.0e5  # POLYCC_POS_MAX: larger coordinates are invalid input
 
 
+GRID_BOX_MARGIN = 1e-3  # m: a polytope whose ball bound stays this far inside the box so far gets no LP
+
+
 def grid_box(packed: PackedScene, delta: float, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) such that every polytope has phi_k(p) >= delta at every p outside [lo, hi]
     (certified per face): the union of the polytopes grown by delta, boxed.  A polytope with the axis
     plane +-e itself (n = e exactly) needs no LP: phi >= +-p_i - d >= delta beyond d + delta.
+    Per face of the box, the polytopes are taken in decreasing order of their ball bound (phi_k >=
+    (|p - c_k| - R_k) / ig_k >= delta beyond rho_k = R_k + delta ig_k from c_k, cushioned outward) and the
+    LP stops at the first polytope whose ball bound lies ``GRID_BOX_MARGIN`` inside the face found so far:
+    the rest are certified by their ball alone (on the 6M-splat room 1 in ~40 polytopes needed an LP), and
+    the face is the largest LP bound unless an LP certificate is looser than the ball by more than the margin.
     ``cache`` (a dict kept by the caller) memoises the per-polytope faces across packings."""
     from fractions import Fraction
 
     pm = packed.plane_matrix().astype(np.float64)
+    c, R, ig = _poly_geometry(packed)
+    rho = (R + delta * ig) * (1 + 1e-6) + 1e-6  # (dist - R) / ig >= delta beyond rho, rounding cushioned
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for p in packed.polys:
-        rows = pm[int(p["first"]) : int(p["first"]) + int(p["count"])]
-        key = (rows.tobytes(), float(delta))
+    first, count = packed.polys["first"].astype(np.int64), packed.polys["count"].astype(np.int64)
+
+    def face(k: int, j: int, sign: float) -> float:
+        rows = pm[first[k] : first[k] + count[k]]
+        key = (rows.tobytes(), float(delta), j, sign)
         if cache is not None and key in cache:
-            f_lo, f_hi = cache[key]
+            return cache[key]
+        e = np.zeros(3)
+        e[j] = sign
+        exact = np.nonzero(np.all(rows[:, :3] == e, axis=1))[0]
+        if len(exact):  # X = d + delta, rounded up (exact rationals)
+            X = Fraction(float(np.min(rows[exact, 3]))) + Fraction(delta)
+            b = float(X)
+            b = b if Fraction(b) >= X else float(np.nextafter(b, np.inf))
         else:
-            f_lo, f_hi = np.empty(3), np.empty(3)
-            for j in range(3):
-                for sign, outv in ((1.0, f_hi), (-1.0, f_lo)):
-                    e = np.zeros(3)
-                    e[j] = sign
-                    exact = np.nonzero(np.all(rows[:, :3] == e, axis=1))[0]
-                    if len(exact):  # X = d + delta, rounded up (exact rationals)
-                        X = Fraction(float(np.min(rows[exact, 3]))) + Fraction(delta)
-                        b = float(X)
-                        b = b if Fraction(b) >= X else float(np.nextafter(b, np.inf))
-                    else:
-                        b = _face_bound(rows[:, :3], rows[:, 3], e, delta)
-                    outv[j] = b if sign > 0 else -b
-            if cache is not None:
-                cache[key] = (f_lo, f_hi)
-        lo, hi = np.minimum(lo, f_lo), np.maximum(hi, f_hi)
+            b = _face_bound(rows[:, :3], rows[:, 3], e, delta)
+        if cache is not None:
+            cache[key] = b
+        return b
+
+    for j in range(3):
+        for sign in (1.0, -1.0):
+            ub = sign * c[:, j] + rho  # sign * p_j <= ub_k wherever phi_k < delta
+            best = -np.inf
+            for k in np.argsort(-ub, kind="stable"):
+                if ub[k] + GRID_BOX_MARGIN < best:
+                    break
+                best = max(best, face(int(k), j, sign))
+            if sign > 0:
+                hi[j] = max(hi[j], best)
+            else:
+                lo[j] = min(lo[j], -best)
     return lo, hi
 
 

@@ -105,6 +105,45 @@ def test_grid_box_is_certified(seed, n, boxes, cap, cell, pseed):
     assert np.all(B.exact_minmax(sc, x) >= delta * (1 - 1e-12))
 
 
+def _every_lp_box(sc, delta):
+    """grid_box as first written: every face of every polytope from its own LP (or exact axis plane)."""
+    from fractions import Fraction
+
+    from polycc.onboard.index import _face_bound
+
+    pm = sc.plane_matrix().astype(np.float64)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for p in sc.polys:
+        rows = pm[int(p["first"]) : int(p["first"]) + int(p["count"])]
+        for j in range(3):
+            for sign in (1.0, -1.0):
+                e = np.zeros(3)
+                e[j] = sign
+                exact = np.nonzero(np.all(rows[:, :3] == e, axis=1))[0]
+                if len(exact):
+                    X = Fraction(float(np.min(rows[exact, 3]))) + Fraction(delta)
+                    b = float(X) if Fraction(float(X)) >= X else float(np.nextafter(float(X), np.inf))
+                else:
+                    b = _face_bound(rows[:, :3], rows[:, 3], e, delta)
+                if sign > 0:
+                    hi[j] = max(hi[j], b)
+                else:
+                    lo[j] = min(lo[j], -b)
+    return lo, hi
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 40), st.booleans(), st.sampled_from([0.1, 0.3, 0.6]))
+def test_grid_box_skips_lps_without_changing_the_box(seed, n, boxes, cap):
+    """Regression for the ball-bound skip (most polytopes get no LP): the box is bit for bit the one
+    with an LP for every face of every polytope."""
+    sc = _small(seed, n, boxes)
+    delta = cap + index_slack(sc, 100.0)
+    lo, hi = grid_box(sc, delta)
+    want_lo, want_hi = _every_lp_box(sc, delta)
+    assert lo.tobytes() == want_lo.tobytes() and hi.tobytes() == want_hi.tobytes()
+
+
 @lru_cache(maxsize=64)
 def _small(seed: int, n: int, boxes: bool):
     return small_scene(seed, n, boxes)
