@@ -426,6 +426,38 @@ def test_capped_tables_are_skipped_only_where_the_uncapped_neighbours_miss_the_r
     assert _capped_worth_trying(60, [], rate)
 
 
+def test_capped_tables_leave_their_neighbours_index_bytes_free(built4):
+    """Regression: with a rate budget and an index, a capped table's reduction spent every byte it freed on
+    half-planes and left its index only what the coarsest one needed (the 6M-splat room's capped candidates
+    missed the rate 6-8x). Now it leaves free the index bytes of the uncapped neighbours that meet the rate."""
+    import types
+
+    from polycc.budget.select import _reserving
+    from polycc.cover.family import CoverFamily
+
+    fam = CoverFamily.load(built4 / "out4")
+    budget = Budget(4 * 1024, None, 100_000.0, 0.3)
+    best, cands, _ = select(fam, budget, mc_samples=5000, normal_caps=(None, 24, 12))
+    plain = [c for c in cands if c.max_normals is None]
+    capped = [c for c in cands if c.max_normals is not None]
+    assert capped, "a capped table was tried"
+    reserve = _reserving(budget, [(c.n, c.max_normals) for c in capped], plain).index_reserve
+    for c in capped:
+        assert reserve[c.n] > 0
+        assert c.bytes - c.packed.index.nbytes() <= budget.flash_bytes - reserve[c.n]
+    assert best.meets_rate
+
+    def cand(n, meets, ix):
+        return types.SimpleNamespace(n=n, meets_rate=meets, packed=types.SimpleNamespace(
+            index=types.SimpleNamespace(nbytes=lambda: ix)))
+
+    done = [cand(10, True, 500), cand(20, False, 900), cand(40, True, 700)]
+    assert _reserving(budget, [(15, 24), (30, 24), (50, 12)], done).index_reserve == {15: 500, 30: 700, 50: 700}
+    assert _reserving(budget, [(25, 24)], [cand(20, False, 900), cand(30, False, 1)]).index_reserve is None
+    assert _reserving(Budget(4096), [(15, 24)], done) == Budget(4096)  # no rate budget: nothing reserved
+    assert Budget(4096, index_reserve={15: 400}).caps(15, 10)["flash"] == Budget(4096).caps(15, 10)["flash"] - 100
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), q=st.floats(0.0, 1.0), per_polytope=st.sampled_from([None, 12, 24]))
 def test_streams_recorded_past_a_key_serve_every_greedy_that_stops_below_it(seed, q, per_polytope):
