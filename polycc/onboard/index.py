@@ -88,7 +88,7 @@ def grid_box(packed: PackedScene, delta: float, cache: dict | None = None) -> tu
     Per face of the box, the polytopes are taken in decreasing order of their ball bound (phi_k >=
     (|p - c_k| - R_k) / ig_k >= delta beyond rho_k = R_k + delta ig_k from c_k, cushioned outward) and the
     LP stops at the first polytope whose ball bound lies ``GRID_BOX_MARGIN`` inside the face found so far:
-    the rest are certified by their ball alone (on the 6M-splat room 1 in ~40 polytopes needed an LP), and
+    the rest are certified by their ball alone (the 6M-splat room's selection: 1 025 LPs instead of 10 708), and
     the face is the largest LP bound unless an LP certificate is looser than the ball by more than the margin.
     ``cache`` (a dict kept by the caller) memoises the per-polytope faces across packings."""
     from fractions import Fraction
