@@ -102,6 +102,7 @@ static bool holding;     /* a fallback holds holdPos */
 static float holdPos[3]; /* where the fallback began */
 static float lastGood[3];
 static bool haveLastGood;
+static bool psiFresh; /* the previous app tick evaluated the kernel (trace.out.psi is one period old) */
 static bool heartbeatSeen;
 static uint32_t lastHeartbeat; /* tick */
 static bool linkLostLatched; /* the last engagement ended in a link-loss landing (cleared by enable) */
@@ -597,6 +598,7 @@ void polycc_app_init(void)
     settling = false;
     settleStart = 0u;
     memset(&trace, 0, sizeof trace);
+    psiFresh = false;
     polycc_swarm_reset(&swarm); /* swarm */
     pSwarmV = POLYCC_APP_DEFAULT_SWARM_V;
     lNbr = 0u;
@@ -641,13 +643,21 @@ const polycc_app_trace_t *polycc_app_trace(void)
 /* Braking term: the largest speed from which the vehicle stops within the clearance psi of
  * the previous tick, assuming it reacts after POLYCC_APP_BRAKE_S and then decelerates at
  * POLYCC_APP_BRAKE_ACC: t s + s^2 / (2 A) = psi, s = A (sqrt(t^2 + 2 psi / A) - t).  Returns
- * vmax when braking is off or no previous evaluation exists, and at least POLYCC_APP_BRAKE_VMIN. */
-static float brakeSpeed(float vmax)
+ * vmax when braking is off, and at least POLYCC_APP_BRAKE_VMIN.  Without a psi from the previous
+ * tick (the first tick of an engagement, or after a tick that held without evaluating) it returns
+ * POLYCC_APP_BRAKE_VMIN: the vehicle may be anywhere since then.  Regression: it returned vmax, and the
+ * first command of every flight was the unbraked go-to-goal velocity (1.5 m/s from a start 6 cm from a
+ * box at vmax 2 m/s) for one tick; the shield, which flies each decision for one 10 ms period, flew it
+ * and gave the vehicle a 110-145 m/s^3 jolt (bench/bench_shield.py). */
+static float brakeSpeed(float vmax, bool fresh)
 {
     const float t = POLYCC_APP_BRAKE_S, A = POLYCC_APP_BRAKE_ACC;
     float psi = trace.out.psi, s;
-    if (!(A > 0.0f) || trace.calls == 0u || (trace.out.flags & POLYCC_FLAG_INVALID)) {
+    if (!(A > 0.0f)) {
         return vmax;
+    }
+    if (!fresh || trace.calls == 0u || (trace.out.flags & POLYCC_FLAG_INVALID)) {
+        return POLYCC_APP_BRAKE_VMIN < vmax ? POLYCC_APP_BRAKE_VMIN : vmax;
     }
     s = psi > 0.0f ? A * (sqrtf(t * t + 2.0f * psi / A) - t) : 0.0f;
     if (!(s > POLYCC_APP_BRAKE_VMIN)) {
@@ -703,6 +713,9 @@ uint32_t polycc_app_tick(void)
     uint64_t t0, t1;
     uint8_t status;
     uint32_t period = periodTicks(pRateHz);
+    bool fresh = psiFresh;
+
+    psiFresh = false; /* set again below if this tick evaluates the kernel */
 
     { /* swarm: age the neighbour reports by the time since the last tick (1 tick = 1 ms) */
         uint32_t now = xTaskGetTickCount();
@@ -790,7 +803,7 @@ uint32_t polycc_app_tick(void)
         return period;
     }
 
-    prm.v_max = brakeSpeed(pVmax);
+    prm.v_max = brakeSpeed(pVmax, fresh);
 
     t0 = usecTimestamp();
     (void)polycc_swarm_step(&polycc_scene, &prm, &swarm, pSwarmV, x, goal, &out); /* polycc_step without neighbours */
@@ -802,6 +815,7 @@ uint32_t polycc_app_tick(void)
     memcpy(trace.goal, goal, sizeof trace.goal);
     trace.params = prm;
     trace.out = out;
+    psiFresh = true;
     lPsi = out.psi;
 
     if (out.flags & POLYCC_FLAG_INVALID) {

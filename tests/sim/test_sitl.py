@@ -104,6 +104,31 @@ def test_brake_can_be_compiled_out(walls):
     assert np.all(tr.io["vmax"] == np.float32(1.0)) and tr.success
 
 
+def test_the_first_tick_of_an_engagement_is_braked_to_the_minimum(sim):
+    """Regression: without a psi from the previous tick the braking term returned vmax, so every flight's first
+    command was the unbraked go-to-goal velocity (1.5 m/s, 6 cm from a box, at vmax 2 m/s). Now the first tick
+    flies at most POLYCC_APP_BRAKE_VMIN (0.05 m/s) and the next one is braked by the first tick's psi."""
+    tr = sim.fly(START, GOAL, "quadrotor", FlightConfig(record_app_io=True, vmax=1.0, t_max_s=0.5))
+    io = tr.io
+    assert io["calls"][0] == 1 and io["vmax"][0] == np.float32(0.05)
+    assert np.linalg.norm(io["u"][0]) <= 0.05 * (1 + 1e-6)
+    assert io["vmax"][1] == np.float32(1.0)  # 1.2 m from the walls: the braking speed is above vmax
+
+
+def test_the_shield_does_not_fly_a_jolt_at_the_start(walls):
+    """Regression (bench/bench_shield.py, app_shield at 2 m/s): the shield flies each decision for one 10 ms
+    period, and it flew the app's unbraked first command, an acceleration step of 110-145 m/s^3 from a start
+    near a box where the app alone had 17. Start 6 cm (psi) from the wall's cover, goal diagonally past it."""
+    d, ell = walls
+    start, goal = (-0.27, -0.9, 0.7), (-0.9, 0.9, 1.4)
+    jerk = {}
+    for shield in (False, True):
+        sim = Simulator(d / "polytopes.h", ell)
+        cfg = FlightConfig(vmax=2.0, radius=0.2, clearance_radius=0.1, shield=shield, shield_radius=0.1, t_max_s=0.3)
+        jerk[shield] = float(np.max(sim.fly(start, goal, "quadrotor", cfg).jerk[:20]))
+    assert jerk[True] <= jerk[False] * 1.2 + 1.0, jerk
+
+
 @pytest.mark.parametrize("dynamics", ["integrator", "crazyflie", "quadrotor"])
 def test_flight_through_gap_is_clear(sim, dynamics):
     tr = sim.fly(START, GOAL, dynamics, FlightConfig(vmax=1.0))

@@ -52,12 +52,17 @@ def test_report_enters_the_barrier_bit_exactly(app):
     got_u = np.array(list(tr.out.u), np.float32)
     assert np.array_equal(got_u.view(np.uint32), want["u"].view(np.uint32))
     assert np.float32(tr.out.psi).view(np.uint32) == want["psi"].view(np.uint32)
-    assert want["flags"] & 1  # the neighbour changed the command
-    # one period later the report is older by exactly the period
+    # one period later the report is older by exactly the period (and the speed limit is the braking term's of
+    # the first tick's psi: the first tick of an engagement flies at most 0.05 m/s)
     app.tick(period)
     ref.age(period)
+    tr = app.trace()
+    params = Params(kappa=100.0, radius=float(tr.params.radius), beta=float(tr.params.beta),
+                    c_clf=float(tr.params.c_clf), v_max=float(tr.params.v_max))
     want = SW.step(packed, params, ref, 1.0, x, np.array([4.0, 3.0, 1.0], np.float32))
-    assert np.float32(app.trace().out.psi).view(np.uint32) == want["psi"].view(np.uint32)
+    assert np.float32(tr.out.psi).view(np.uint32) == want["psi"].view(np.uint32)
+    assert np.array_equal(np.array(list(tr.out.u), np.float32).view(np.uint32), want["u"].view(np.uint32))
+    assert want["flags"] & 1  # the neighbour changed the command
 
 
 def test_drone_stops_short_of_a_hovering_neighbour(app):
