@@ -460,10 +460,10 @@ def _reserving(budget: Budget, capped: list, done: list[Candidate]) -> Budget:
 
     A capped table buys half-planes, and the reduction spent every byte it freed on them: the index then had only
     what the retries of :func:`realise` cleared for the coarsest one. On the 6M-splat room at 5 cm all seven
-    capped candidates missed the rate by 6-8x (396 000-511 000 cycles against 67 200) and took 60 of the
-    selection's 100 s; with the reserve they came within 1.2-2x of it in half the time (still missing it, and the
-    uncapped n = 351 is chosen as before). A capped candidate that meets the rate can now be found: before, one
-    could only be chosen when nothing met the rate."""
+    capped candidates missed the rate by 2-8x (150 000-511 000 cycles against 67 200) and took 60 of the
+    selection's 100 s; with the reserve they come within 1.06-1.5x of it, and the selection took 49 s instead of
+    80 (they still miss it, and the uncapped n = 351 is chosen as before). A capped candidate that meets the rate
+    can now be found: before, one could only be chosen when nothing met the rate."""
     from dataclasses import replace
 
     if budget.rate_cycles is None or budget.clearance_cap is None or not capped:
