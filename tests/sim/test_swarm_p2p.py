@@ -92,16 +92,20 @@ def test_heard_record_enters_the_barrier_bit_exactly(app):
     _start(app, x)
     nb = np.array([2.6, 2.3, 1.0], np.float32)
     _hear(app, pack_neighbour(7, nb, 20, 0.1), tick=100)
-    app.tick(130)  # heard 30 ms before the tick: the table holds it 20 + 30 ms old
+    period = app.tick(130)  # heard 30 ms before the tick: the table holds it 20 + 30 ms old
     assert app.get_log("polycc", "nNbr") == 1 and app.get_log("polycc", "p2pRx") == 1
-    tr = app.trace()
     ref = SW.Swarm()
     ref.report(7, nb, 20 + 30, 0.1, x)
-    params = Params(kappa=100.0, radius=float(tr.params.radius), beta=float(tr.params.beta),
-                    c_clf=float(tr.params.c_clf), v_max=float(tr.params.v_max))
-    want = SW.step(app.packed_scene(), params, ref, 1.0, x, np.array([4.0, 3.0, 1.0], np.float32))
-    assert np.array_equal(np.array(list(tr.out.u), np.float32).view(np.uint32), want["u"].view(np.uint32))
-    assert np.float32(tr.out.psi).view(np.uint32) == want["psi"].view(np.uint32)
+    for t in (130, 130 + period):  # the second tick: braked by the first tick's psi (the first flies <= 0.05 m/s)
+        if t > 130:
+            app.tick(t)
+            ref.age(period)
+        tr = app.trace()
+        params = Params(kappa=100.0, radius=float(tr.params.radius), beta=float(tr.params.beta),
+                        c_clf=float(tr.params.c_clf), v_max=float(tr.params.v_max))
+        want = SW.step(app.packed_scene(), params, ref, 1.0, x, np.array([4.0, 3.0, 1.0], np.float32))
+        assert np.array_equal(np.array(list(tr.out.u), np.float32).view(np.uint32), want["u"].view(np.uint32))
+        assert np.float32(tr.out.psi).view(np.uint32) == want["psi"].view(np.uint32)
     assert want["flags"] & 1  # the neighbour changed the command
 
 
