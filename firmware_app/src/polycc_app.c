@@ -89,6 +89,7 @@ static uint16_t pRateHz;
 
 /* ---- log group polycc ---- */
 static float lPsi, lUx, lUy, lUz;
+static float lRadius; /* the radius the filter flies with, m: polycc.radius, or the shield's keep-out if larger */
 static uint8_t lActive, lStatus;
 static uint32_t lEvalUs;
 static uint32_t lLate; /* app ticks that started more than one RTOS tick after their scheduled wake */
@@ -559,6 +560,7 @@ void polycc_app_init(void)
     pRadius = POLYCC_APP_DEFAULT_RADIUS;
     pRateHz = POLYCC_APP_DEFAULT_RATE_HZ;
     lPsi = 0.0f;
+    lRadius = POLYCC_APP_DEFAULT_RADIUS;
     lUx = 0.0f;
     lUy = 0.0f;
     lUz = 0.0f;
@@ -709,7 +711,7 @@ uint32_t polycc_app_tick(void)
 {
     polycc_params_t prm;
     polycc_out_t out;
-    float x[3], goal[3];
+    float x[3], goal[3], keep;
     uint64_t t0, t1;
     uint8_t status;
     uint32_t period = periodTicks(pRateHz);
@@ -778,7 +780,9 @@ uint32_t polycc_app_tick(void)
     }
 
     prm.kappa = POLYCC_SCENE_KAPPA;
-    prm.radius = pRadius;
+    keep = polycc_controller_keepout(); /* shield on: stop where the shield lets the vehicle, not inside its margin */
+    prm.radius = pRadius > keep ? pRadius : keep;
+    lRadius = prm.radius;
     prm.beta = pBeta;
     prm.c_clf = pClfGain;
     prm.v_max = pVmax;
@@ -924,4 +928,7 @@ LOG_ADD(LOG_UINT16, p2pRx, &lP2pRx)
 LOG_ADD(LOG_UINT16, p2pTx, &lP2pTx)
 /** @brief Swarm: P2P records refused: malformed, ring full, own id, "forget", table full (wraps) */
 LOG_ADD(LOG_UINT16, p2pDrop, &lP2pDrop)
+/** @brief Radius the filter flies with, m: polycc.radius, or polyccShield.radius + tube if the shield is on
+ * and that is larger */
+LOG_ADD(LOG_FLOAT, radius, &lRadius)
 LOG_GROUP_STOP(polycc)

@@ -96,6 +96,11 @@ uint32_t polycc_controller_max_evals(void)
     return e > POLYCC_SHIELD_MAX_EVALS ? POLYCC_SHIELD_MAX_EVALS : (uint32_t)e;
 }
 
+float polycc_controller_keepout(void)
+{
+    return pOn ? pRadius + pTube : 0.0f;
+}
+
 uint32_t polycc_controller_plan_worst_cycles(void)
 {
     return POLYCC_SHIELD_FIXED_CYCLES + POLYCC_SHIELD_STEP_CYCLES * POLYCC_SHIELD_MAX_STEPS +

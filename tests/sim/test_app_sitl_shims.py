@@ -16,7 +16,8 @@ from polycc.onboard.app import STATUS_NAMES, app_rate_hz
 from polycc.sim.app_ffi import SRC, AppSim
 
 LOG_VARS = [("psi", 7), ("ux", 7), ("uy", 7), ("uz", 7), ("active", 1), ("evalUs", 3), ("status", 1), ("rate", 2),
-            ("late", 3), ("nNbr", 1), ("p2pRx", 2), ("p2pTx", 2), ("p2pDrop", 2)]
+            ("late", 3), ("nNbr", 1), ("p2pRx", 2), ("p2pTx", 2), ("p2pDrop", 2),
+            ("radius", 7)]
 # PARAM_UINT8 = 0x08, PARAM_FLOAT = 0x06, PARAM_UINT16 = 0x09
 PARAMS = [("enable", 0x08), ("goalX", 0x06), ("goalY", 0x06), ("goalZ", 0x06), ("vmax", 0x06), ("beta", 0x06),
           ("clfGain", 0x06), ("radius", 0x06), ("rateHz", 0x09), ("swarmV", 0x06), ("swarmN", 0x08),
@@ -278,3 +279,26 @@ def test_broken_header_gives_a_one_line_error(tmp_path):
     h.write_text(h.read_text().replace("#define POLYCC_SCENE_N_POLYS", "#define POLYCC_SCENE_N_POLYS oops +"))
     with pytest.raises(PolyccError, match=r"building the host app with .*polytopes.h failed: .*error"):
         AppSim(h)
+
+
+@pytest.mark.parametrize("app_r,shield,want", [(0.1, False, 0.1), (0.1, True, 0.15), (0.3, True, 0.3),
+                                               (0.0, True, 0.15)])
+def test_the_app_keeps_out_of_the_shields_margin(fresh, app_r, shield, want):
+    """With the shield on, the go-to-goal app flies with at least the shield's keep-out (polyccShield.radius +
+    tube, 0.1 + 0.05 m): with polycc.radius below it, the app's own filter drove into the shield's margin and was
+    braked there. The psi it flies on is the kernel's at that radius (the kernel subtracts it)."""
+    _enable(fresh, airborne=(1.5, 0.5, 0.5))
+    fresh.set_param("polycc", "radius", app_r)
+    fresh.set_param("polyccShield", "radius", 0.1)
+    fresh.set_param("polyccShield", "enable", int(shield))
+    fresh.set_estimate((1.5, 0.5, 0.5))  # between the two boxes, 0.5 m from each
+    fresh.tick(0)
+    assert fresh.get_log("polycc", "radius") == np.float32(want if not shield or app_r > 0.15 else
+                                                            np.float32(0.1) + np.float32(0.05))
+    free = fresh.get_log("polycc", "psi")
+    fresh.reset()
+    _enable(fresh, airborne=(1.5, 0.5, 0.5))
+    fresh.set_param("polycc", "radius", want)
+    fresh.set_estimate((1.5, 0.5, 0.5))
+    fresh.tick(0)
+    assert fresh.get_log("polycc", "psi") == pytest.approx(free, abs=1e-6)
