@@ -27,17 +27,18 @@ here; the shield's cost on board is its certified cycle budget (printed, from th
         [--psi-caps 0,0.6]   (shield cells on min(psi, cap): a clearance-capped barrier, issue 18)
         [--gains 4:4,2:1]    (shield cells per ECBF gains k1:k0, polyccShield.k1/k0)
 
-Real firmware (``--firmware FWDIR``, the CrazySim SITL tree or tarball): the same two modes on the first
-``--fw-pairs`` pairs per speed, each flight a fresh SITL instance flown by real cflib
+Real firmware (``--firmware FWDIR``, the CrazySim SITL tree or tarball): the modes of ``--modes`` (any of the
+five above) on the first ``--fw-pairs`` pairs per speed, each flight a fresh SITL instance flown by real cflib
 (:mod:`polycc.sim.firmware.flights`: HL takeoff to the start, app enabled, HL landing): ``app`` is the
 shipped cf2 (PID controller), ``shield`` a cf2 with the braking term compiled out, the out-of-tree
-controller (stabilizer.controller = 5 in the fork) and polyccShield.enable = 1 from the start height. Model
+controller (stabilizer.controller = 5 in the fork) and polyccShield.enable = 1 from the start height
+(``app_shield``: the shipped cf2 with the same controller and shield, app radius 0.2 m). Model
 "firmware" rows: collisions and clearance on the bridge's 100 Hz truth, jerk from its velocity, the
 shield's logged counters. The rate gap needs the app's per-tick commands, which the firmware does not
 log: "-". Next to them, model "quadrotor" rows on the same pairs (fast sim) for the agreement.
 
     python bench/bench_shield.py --firmware ../shared/firmware/crazyflie-firmware-sitl-6a4d2d0.tar.xz \
-        --fw-pairs 5 [--speeds ...]
+        --fw-pairs 5 [--speeds ...] [--modes app,shield,app_shield]
 
 Writes bench/results/shield.json (fast) and bench/results/shield_firmware.json (--firmware).
 """
@@ -95,9 +96,10 @@ def fly_cell(job: dict) -> dict:
     }
 
 
-def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print) -> list[dict]:
-    """The real-firmware rows (module docstring), flown one after the other (each SITL is lock-stepped at up
-    to real time: parallel instances only slow each other)."""
+def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app", "shield"), done=None) -> list[dict]:
+    """The real-firmware rows (module docstring) for ``modes`` (those of ``--modes``), flown one after the other
+    (each SITL is lock-stepped at up to real time: parallel instances only slow each other). ``done(rows)`` is
+    called after each cell, with the rows so far."""
     from bench_sim import arena
 
     from polycc.sim.firmware.build import build_cf2
@@ -106,16 +108,20 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print) -> list[dic
 
     ell = arena("demo")
     ref = Simulator(header)
-    builds = {"app": build_cf2(tree, header, log=say),
-              "shield": build_cf2(tree, header, extra_cflags=["-DPOLYCC_APP_BRAKE_ACC=0.0f"], log=say)}
+    braked = {m: m not in ("shield", "nobrake") for m in modes}
+    builds = {}
+    if any(braked.values()):
+        builds[True] = build_cf2(tree, header, log=say)
+    if not all(braked.values()):
+        builds[False] = build_cf2(tree, header, extra_cflags=["-DPOLYCC_APP_BRAKE_ACC=0.0f"], log=say)
     rows = []
     for speed in speeds:
-        for mode in ("app", "shield"):
+        for mode in modes:
             t0 = time.perf_counter()
-            shield = mode == "shield"
-            fw = FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=builds[mode])
-            cfg = FlightConfig(vmax=speed, radius=0.2 if shield else RADIUS, clearance_radius=RADIUS, shield=shield,
-                               shield_radius=RADIUS)
+            shield = mode in ("shield", "app_shield")
+            fw = FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=builds[braked[mode]])
+            cfg = FlightConfig(vmax=speed, radius=RADIUS if mode == "app" else 0.2, clearance_radius=RADIUS,
+                               shield=shield, shield_radius=RADIUS)
             trials = []
             for k, (s0, g) in enumerate(pairs):
                 t = fw.fly(s0, g, cfg)
@@ -141,6 +147,8 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print) -> list[dic
                 "rtf_mean": float(np.mean([t.extra.get("rtf") or 0.0 for t in trials])),
                 "wall_s": time.perf_counter() - t0,
             })
+            if done:
+                done(rows)
     return rows
 
 
@@ -185,14 +193,14 @@ def main() -> int:
               "plan_worst_cycles": int(lib.polycc_controller_plan_worst_cycles()),
               "period_share_cycles": 168_000 * 10 * int(lib.POLYCC_SHIELD_CPU_SHARE_PERCENT) // 100}
     print(f"shield plan budget: {budget}")
-    if args.firmware:
-        return firmware_main(args, header, pairs, budget)
-    caps = [float(c) for c in args.psi_caps.split(",")]
-    gains = [tuple(float(x) for x in g.split(":")) for g in args.gains.split(",")]
     modes = args.modes.split(",")
     unknown = set(modes) - {"app", "shield", "nobrake", "app_r2", "app_shield"}
     if unknown:
         ap.error(f"--modes: unknown {sorted(unknown)}")
+    if args.firmware:
+        return firmware_main(args, header, pairs, budget)
+    caps = [float(c) for c in args.psi_caps.split(",")]
+    gains = [tuple(float(x) for x in g.split(":")) for g in args.gains.split(",")]
     jobs = [{"header": str(header), "pairs": pairs, "speed": float(s), "dynamics": d, "mode": m, "psi_cap": c,
              "gains": k}
             for d in args.dynamics.split(",") for s in args.speeds.split(",")
@@ -216,21 +224,28 @@ def main() -> int:
 
 
 def firmware_main(args, header: Path, pairs, budget) -> int:
-    """--firmware: the real-firmware rows and, on the same pairs, the fast quadrotor rows."""
+    """--firmware: the real-firmware rows and, on the same pairs, the fast quadrotor rows, for ``--modes``
+    (default app,shield). The JSON is written after every cell (``partial`` until the last)."""
     t0 = time.perf_counter()
     speeds = [float(v) for v in args.speeds.split(",")]
+    modes = args.modes.split(",")
     sub = pairs[: args.fw_pairs]
     rows = []
     for speed in speeds:  # the fast sim on the same pairs, side by side
-        for mode in ("app", "shield"):
+        for mode in modes:
             rows.append(fly_cell({"header": str(header), "pairs": sub, "speed": speed, "dynamics": "quadrotor",
                                   "mode": mode, "psi_cap": 0.0, "gains": None}))
-    rows += fly_firmware_cells(args.firmware, header, sub, speeds)
-    rows.sort(key=lambda r: (r["speed"], r["mode"], r["dynamics"]))
+
+    def save(fw_rows, partial=True):
+        out = sorted(rows + fw_rows, key=lambda r: (r["speed"], r["mode"], r["dynamics"]))
+        write_json("shield_firmware", {"pairs": len(sub), "budget": budget, "rows": out, "partial": partial,
+                                       "wall_s": time.perf_counter() - t0})
+        return out
+
+    fw_rows = fly_firmware_cells(args.firmware, header, sub, speeds, modes=modes, done=save)
+    out = save(fw_rows, partial=False)
     print_table(f"Shield vs today's app on the REAL firmware (SITL) and the fast quadrotor, demo arena n={N_POLYS}, "
-                f"{len(sub)} pairs per speed", HEAD, _table_rows(rows))
-    write_json("shield_firmware", {"pairs": len(sub), "budget": budget, "rows": rows,
-                                   "wall_s": time.perf_counter() - t0})
+                f"{len(sub)} pairs per speed", HEAD, _table_rows(out))
     return 0
 
 
