@@ -21,11 +21,13 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
+from scipy.spatial import ConvexHull, QhullError
 
 from polycc.errors import PolyccError
+from polycc.geometry.qhull_raw import halfspaces_raw
 
 MIN_PLANES = 4  # a bounded polytope in R^3 needs at least 4 half-planes
+_AXES = np.arange(3)
 
 
 def is_bounded(normals: np.ndarray, min_gamma: float = 1e-9) -> bool:
@@ -75,7 +77,7 @@ def _intersection(h: np.ndarray, interior, min_gamma: float, max_reach: float):
     interior = np.asarray(interior, np.float64)
     try:
         with np.errstate(divide="ignore", invalid="ignore"):
-            hs = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], interior)
+            hs = halfspaces_raw(np.c_[h[:, :3], -h[:, 3]], interior)
     except (QhullError, ValueError):
         return None
     v = hs.intersections
@@ -99,15 +101,16 @@ def _intersection_certified(h: np.ndarray, c: np.ndarray, min_gamma: float, max_
     intersection from ``c`` is the one it would compute next. Saves a third of a drop cost."""
     if len(h) < MIN_PLANES:
         return False
-    norms = np.linalg.norm(h[:, :3], axis=1)
-    if not np.all(norms > 0):
+    n = h[:, :3]
+    norms = np.sqrt(np.add.reduce(n * n, axis=1))  # np.linalg.norm(n, axis=1), without its checks
+    if not norms.min() > 0:
         return False
-    depth = (h[:, 3] - h[:, :3] @ c) / norms
+    depth = (h[:, 3] - n @ c) / norms
     if not depth.min() > 0:
         return False
     try:
         with np.errstate(divide="ignore", invalid="ignore"):
-            hs = HalfspaceIntersection(np.c_[h[:, :3], -h[:, 3]], c)
+            hs = halfspaces_raw(np.concatenate([n, -h[:, 3:]], axis=1), c)
     except (QhullError, ValueError):
         return False
     if not hs.dual_equations[:, 3].max() < 0:
@@ -169,11 +172,14 @@ def _dual_volume(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> fl
     cnt = np.bincount(p, minlength=n_planes)
     if np.count_nonzero(cnt >= 3) < MIN_PLANES:
         return None
-    g = np.stack([np.bincount(p, weights=np.repeat(w[:, k], 3), minlength=n_planes) for k in range(3)], axis=1)
-    g /= np.maximum(cnt, 1)[:, None]  # face means, relative to c
+    # face means relative to c: one bincount over (plane, axis) bins, each bin summed in the same order as
+    # a bincount per axis would
+    g = np.bincount((p[:, None] * 3 + _AXES).ravel(), weights=np.repeat(w, 3, axis=0).ravel(),
+                    minlength=3 * n_planes).reshape(n_planes, 3)
+    g /= np.maximum(cnt, 1)[:, None]
     fs = np.sort(f, axis=1)
-    key = np.concatenate([fs[:, 0] * n_planes + fs[:, 1], fs[:, 0] * n_planes + fs[:, 2],
-                          fs[:, 1] * n_planes + fs[:, 2]])  # the edges (plane pairs) at each vertex
+    a, b, d = fs[:, 0] * n_planes, fs[:, 1], fs[:, 2]
+    key = np.concatenate([a + b, a + d, b * n_planes + d])  # the edges (plane pairs) at each vertex
     order = np.argsort(key, kind="stable")
     if len(order) % 2:
         return _dual_volume_sorted(facets, v, c, planes)
@@ -181,9 +187,13 @@ def _dual_volume(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> fl
     edge = key[e0]
     if not np.array_equal(edge, key[e1]):  # not a closed triangulated surface: the general way
         return _dual_volume_sorted(facets, v, c, planes)
-    cr = np.cross(w[e0 % m], w[e1 % m])
-    vol = np.abs(np.einsum("ij,ij->i", g[edge // n_planes], cr)).sum() + \
-        np.abs(np.einsum("ij,ij->i", g[edge % n_planes], cr)).sum()
+    x, y = w[e0 % m].T, w[e1 % m].T
+    cr = np.empty((len(e0), 3))  # np.cross(x, y), the same products and differences
+    cr[:, 0] = x[1] * y[2] - x[2] * y[1]
+    cr[:, 1] = x[2] * y[0] - x[0] * y[2]
+    cr[:, 2] = x[0] * y[1] - x[1] * y[0]
+    q, r = np.divmod(edge, n_planes)
+    vol = np.abs(np.einsum("ij,ij->i", g[q], cr)).sum() + np.abs(np.einsum("ij,ij->i", g[r], cr)).sum()
     return float(vol / 6.0)
 
 
@@ -232,7 +242,7 @@ def inv_gamma(normals: np.ndarray) -> float:
     """1/gamma, gamma = min_{|u|=1} max_l n_l . u = 1 / (largest vertex norm of {x : n_l . x <= 1})."""
     n = np.asarray(normals, np.float64)
     try:
-        verts = HalfspaceIntersection(np.c_[n, -np.ones(len(n))], np.zeros(3)).intersections
+        verts = halfspaces_raw(np.c_[n, -np.ones(len(n))], np.zeros(3)).intersections
     except (QhullError, ValueError) as exc:  # the normals do not positively span R^3
         raise PolyccError(f"a polytope is unbounded (its normals do not surround the origin): {exc}") from None
     if not np.all(np.isfinite(verts)):

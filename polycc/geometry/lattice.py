@@ -18,12 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import QhullError
 
-try:  # the C wrapper ConvexHull is built on (see _qhull_raw)
-    from scipy.spatial._qhull import _Qhull as _RawQhull
-except ImportError:  # pragma: no cover
-    _RawQhull = None
+from polycc.geometry.qhull_raw import hull_raw
 
 # Added to every world-space offset d, metres. Far below any physical length, far above
 # float64 rounding at room scale (ulp(10 m) ~ 2e-15 m).
@@ -52,30 +49,6 @@ class LatticeHull:
     points: np.ndarray
 
 
-def _qhull_raw(pts: np.ndarray, options: bytes):
-    """(volume, simplices, equations) straight from scipy's qhull wrapper.
-
-    ``scipy.spatial.ConvexHull`` spends about half its time in Python bookkeeping; the
-    merge stage calls qhull ~10^5 times, so we use the wrapper class it is built on and
-    fall back to ``ConvexHull`` if that private class ever changes.
-    """
-    if _RawQhull is not None:
-        try:
-            q = _RawQhull(b"i", pts, options, required_options=b"Qt")
-            try:
-                simplices, _, equations, _, _ = q.get_simplex_facet_array()
-                volume = q.volume_area()[0]
-            finally:
-                q.close()
-            return float(volume), simplices, equations
-        except QhullError:
-            raise
-        except Exception:  # pragma: no cover - private API drift
-            pass
-    h = ConvexHull(pts, qhull_options=options.decode())
-    return float(h.volume), h.simplices, h.equations
-
-
 def lattice_hull(points: np.ndarray, options: bytes = b"Qt") -> LatticeHull:
     """Convex hull of (M, 3) integer lattice points (full-dimensional: voxel corners always are).
 
@@ -86,7 +59,7 @@ def lattice_hull(points: np.ndarray, options: bytes = b"Qt") -> LatticeHull:
     """
     pts = np.asarray(points, np.int64)
     try:
-        volume, simplices, equations = _qhull_raw(pts.astype(np.float64), options)
+        volume, simplices, equations = hull_raw(pts.astype(np.float64), options)
     except QhullError as exc:  # pragma: no cover - voxel corners are never flat
         raise ValueError(f"degenerate hull of {len(pts)} lattice points: {exc}") from None
     used = np.zeros(len(pts), bool)  # the hull's vertices, in input order (as np.unique of the simplices)
@@ -97,7 +70,7 @@ def lattice_hull(points: np.ndarray, options: bytes = b"Qt") -> LatticeHull:
 def lattice_hull_facets(points: np.ndarray, options: bytes = b"Qt") -> tuple[float, np.ndarray]:
     """(volume in cells, (F, 4) facet equations) of the hull of integer lattice points, as
     :func:`lattice_hull` gives them, without its vertex bookkeeping (ranking merge pairs needs no more)."""
-    volume, _, equations = _qhull_raw(np.asarray(points, np.int64).astype(np.float64), options)
+    volume, _, equations = hull_raw(np.asarray(points, np.int64).astype(np.float64), options)
     return volume, equations
 
 

@@ -75,12 +75,13 @@ def test_the_dual_path_is_taken():
 
     rng = np.random.default_rng(3)
     pts = rng.normal(size=(80, 3))
-    hs, c = _intersection(hull_halfplanes(pts), pts.mean(axis=0), 1e-9, 1e6)
-    assert _dual_volume(hs.dual_facets, hs.intersections, c, hs.halfspaces) == pytest.approx(
+    h = hull_halfplanes(pts)
+    hs, c = _intersection(h, pts.mean(axis=0), 1e-9, 1e6)
+    assert _dual_volume(hs.dual_facets, hs.intersections, c, h) == pytest.approx(
         ConvexHull(pts).volume, rel=1e-10)
     octa = np.array([[sx, sy, sz, 1.0] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
     hs, c = _intersection(octa, np.zeros(3), 1e-9, 1e6)
-    assert _dual_volume(hs.dual_facets, hs.intersections, c, hs.halfspaces) == pytest.approx(
+    assert _dual_volume(hs.dual_facets, hs.intersections, c, octa) == pytest.approx(
         4.0 / 3.0)
 
 
@@ -135,8 +136,8 @@ def test_the_fan_volume_is_the_sorted_faces_volume(seed, n, box):
     if r is None:
         return
     hs, c = r
-    a = _dual_volume(hs.dual_facets, hs.intersections, c, hs.halfspaces)
-    b = _dual_volume_sorted(hs.dual_facets, hs.intersections, c, hs.halfspaces)
+    a = _dual_volume(hs.dual_facets, hs.intersections, c, h)
+    b = _dual_volume_sorted(hs.dual_facets, hs.intersections, c, h)
     assert a == pytest.approx(b, rel=1e-12)
     assert a == pytest.approx(ConvexHull(hs.intersections).volume, rel=1e-10)
 
