@@ -89,7 +89,7 @@ static uint16_t pRateHz;
 
 /* ---- log group polycc ---- */
 static float lPsi, lUx, lUy, lUz;
-static float lRadius; /* the radius the filter flies with, m: polycc.radius, or the shield's keep-out if larger */
+static float lRadius; /* the radius the filter flies with, m (flightRadius) */
 static uint8_t lActive, lStatus;
 static uint32_t lEvalUs;
 static uint32_t lLate; /* app ticks that started more than one RTOS tick after their scheduled wake */
@@ -669,6 +669,31 @@ static float brakeSpeed(float vmax, bool fresh)
 }
 
 /* Why the app may not take control now (POLYCC_STATUS_OK if it may). */
+/* The radius the filter flies with this tick (POLYCC_APP_KEEPOUT_SLACK): polycc.radius, rising towards the
+ * shield's keep-out as the previous tick's clearance allows.  fresh: the previous tick evaluated the kernel at
+ * lRadius, so trace.out.psi + lRadius is its clearance. */
+static float flightRadius(bool fresh)
+{
+    float keep = polycc_controller_keepout();
+    float target = pRadius > keep ? pRadius : keep;
+    float r = pRadius;
+    if (fresh) {
+        float room = (trace.out.psi + lRadius) - POLYCC_APP_KEEPOUT_SLACK;
+        r = lRadius;
+        if (room > r) { /* (a NaN room is not taken) */
+            r = room;
+        }
+        if (r > target) {
+            r = target;
+        }
+        if (r < pRadius) {
+            r = pRadius;
+        }
+    }
+    lRadius = r;
+    return r;
+}
+
 static uint8_t mayTakeControl(void)
 {
     if (tooSlow()) {
@@ -711,7 +736,7 @@ uint32_t polycc_app_tick(void)
 {
     polycc_params_t prm;
     polycc_out_t out;
-    float x[3], goal[3], keep;
+    float x[3], goal[3];
     uint64_t t0, t1;
     uint8_t status;
     uint32_t period = periodTicks(pRateHz);
@@ -780,9 +805,7 @@ uint32_t polycc_app_tick(void)
     }
 
     prm.kappa = POLYCC_SCENE_KAPPA;
-    keep = polycc_controller_keepout(); /* shield on: stop where the shield lets the vehicle, not inside its margin */
-    prm.radius = pRadius > keep ? pRadius : keep;
-    lRadius = prm.radius;
+    prm.radius = flightRadius(fresh);
     prm.beta = pBeta;
     prm.c_clf = pClfGain;
     prm.v_max = pVmax;
@@ -928,7 +951,7 @@ LOG_ADD(LOG_UINT16, p2pRx, &lP2pRx)
 LOG_ADD(LOG_UINT16, p2pTx, &lP2pTx)
 /** @brief Swarm: P2P records refused: malformed, ring full, own id, "forget", table full (wraps) */
 LOG_ADD(LOG_UINT16, p2pDrop, &lP2pDrop)
-/** @brief Radius the filter flies with, m: polycc.radius, or polyccShield.radius + tube if the shield is on
- * and that is larger */
+/** @brief Radius the filter flies with, m: polycc.radius, rising to polyccShield.radius + tube while the shield
+ * is on and the clearance allows */
 LOG_ADD(LOG_FLOAT, radius, &lRadius)
 LOG_GROUP_STOP(polycc)

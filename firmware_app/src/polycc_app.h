@@ -119,6 +119,15 @@
 #endif
 #define POLYCC_APP_BRAKE_VMIN 0.05f /* m/s */
 
+/* The shield's keep-out (polycc_controller_keepout: polyccShield.radius + tube while it is on): the filter
+ * flies with a radius r that starts at polycc.radius when an engagement starts (or after a tick that did not
+ * evaluate the kernel) and rises towards max(polycc.radius, keep-out) only where the previous tick's
+ * clearance psi + r exceeds the new radius by this slack (m; a 3 m/s vehicle moves 6 mm per 500 Hz tick).
+ * So the app stops where the shield lets it instead of driving into the shield's margin and being braked
+ * there, and a start inside the margin is not a psi < 0 hold: the vehicle flies, and the radius grows as it
+ * leaves the margin. It never shrinks within an engagement, except to follow the two parameters down. */
+#define POLYCC_APP_KEEPOUT_SLACK 0.02f
+
 /* Swarm (docs/swarm.md): app-channel neighbour report, little-endian, 18 bytes: 'N', id (uint8),
  * x, y, z (float, m), age (uint16, ms: latency and estimate error / V), radius (uint16, mm). */
 #define POLYCC_APP_NBR_MAGIC 0x4eu

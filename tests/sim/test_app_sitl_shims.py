@@ -281,24 +281,54 @@ def test_broken_header_gives_a_one_line_error(tmp_path):
         AppSim(h)
 
 
-@pytest.mark.parametrize("app_r,shield,want", [(0.1, False, 0.1), (0.1, True, 0.15), (0.3, True, 0.3),
-                                               (0.0, True, 0.15)])
+KEEP = float(np.float32(0.1) + np.float32(0.05))  # polyccShield.radius + tube, as the C adds them
+
+
+def _radius_ticks(app, app_r, shield, at, ticks=3):
+    _enable(app, airborne=at)
+    app.set_param("polycc", "radius", app_r)
+    app.set_param("polyccShield", "radius", 0.1)
+    app.set_param("polyccShield", "enable", int(shield))
+    app.set_estimate(at)
+    out = []
+    for k in range(ticks):
+        app.tick(2 * k)
+        out.append((app.get_log("polycc", "radius"), app.get_log("polycc", "status"), app.get_log("polycc", "psi")))
+    return out
+
+
+@pytest.mark.parametrize("app_r,shield,want", [(0.1, False, 0.1), (0.1, True, KEEP), (0.3, True, 0.3),
+                                               (0.0, True, KEEP)])
 def test_the_app_keeps_out_of_the_shields_margin(fresh, app_r, shield, want):
-    """With the shield on, the go-to-goal app flies with at least the shield's keep-out (polyccShield.radius +
-    tube, 0.1 + 0.05 m): with polycc.radius below it, the app's own filter drove into the shield's margin and was
-    braked there. The psi it flies on is the kernel's at that radius (the kernel subtracts it)."""
-    _enable(fresh, airborne=(1.5, 0.5, 0.5))
-    fresh.set_param("polycc", "radius", app_r)
-    fresh.set_param("polyccShield", "radius", 0.1)
-    fresh.set_param("polyccShield", "enable", int(shield))
-    fresh.set_estimate((1.5, 0.5, 0.5))  # between the two boxes, 0.5 m from each
-    fresh.tick(0)
-    assert fresh.get_log("polycc", "radius") == np.float32(want if not shield or app_r > 0.15 else
-                                                            np.float32(0.1) + np.float32(0.05))
-    free = fresh.get_log("polycc", "psi")
+    """With the shield on, the go-to-goal app flies with the shield's keep-out (polyccShield.radius + tube,
+    0.1 + 0.05 m) once the clearance allows: with polycc.radius below it, the app's own filter drove into the
+    shield's margin and was braked there. The first tick of an engagement flies polycc.radius (no clearance
+    known yet); the psi it then flies on is the kernel's at the keep-out (the kernel subtracts the radius)."""
+    at = (1.5, 0.5, 0.5)  # between the two boxes, 0.5 m from each
+    got = _radius_ticks(fresh, app_r, shield, at)
+    assert [np.float32(r) for r, _, _ in got] == [np.float32(app_r), np.float32(want), np.float32(want)]
     fresh.reset()
-    _enable(fresh, airborne=(1.5, 0.5, 0.5))
-    fresh.set_param("polycc", "radius", want)
-    fresh.set_estimate((1.5, 0.5, 0.5))
-    fresh.tick(0)
-    assert fresh.get_log("polycc", "psi") == pytest.approx(free, abs=1e-6)
+    ref = _radius_ticks(fresh, want, False, at)
+    assert got[-1][2] == ref[-1][2]  # the same psi as flying polycc.radius = the keep-out
+
+
+def test_a_start_inside_the_shields_margin_flies_and_the_radius_rises_as_it_leaves(fresh):
+    """0.12 m from the box (inside the 0.15 m keep-out, outside polycc.radius 0.1 m): the app flies (not the
+    psi < 0 hold it would be at the keep-out) with polycc.radius; the radius rises with the clearance, 2 cm
+    behind it, up to the keep-out, and never shrinks within the engagement (a jump back in is held, as any
+    psi < 0)."""
+    at = (1.12, 0.5, 0.5)  # box [0, 1]^3: 0.12 m from its x = 1 face
+    got = _radius_ticks(fresh, 0.1, True, at)
+    assert all(st == 1 and r == np.float32(0.1) and psi > 0 for r, st, psi in got), got
+    fresh.set_estimate((1.16, 0.5, 0.5))  # 0.16 m: the radius rises to the clearance less the 2 cm slack
+    for k in range(3, 6):
+        fresh.tick(2 * k)
+    r = fresh.get_log("polycc", "radius")
+    assert 0.1 < r <= 0.16 - 0.02 and fresh.get_log("polycc", "status") == 1
+    fresh.set_estimate((1.12, 0.5, 0.5))  # back in: the radius does not shrink, so the vehicle is held
+    fresh.tick(12)
+    assert fresh.get_log("polycc", "radius") == r and fresh.get_log("polycc", "psi") < 0
+    fresh.set_estimate((1.19, 0.5, 0.5))  # 0.19 m >= 0.15 + 0.02: the keep-out
+    for k in range(7, 10):
+        fresh.tick(2 * k)
+    assert fresh.get_log("polycc", "radius") == np.float32(KEEP) and fresh.get_log("polycc", "status") == 1
