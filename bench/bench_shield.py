@@ -40,6 +40,9 @@ log: "-". Next to them, model "quadrotor" rows on the same pairs (fast sim) for 
     python bench/bench_shield.py --firmware ../shared/firmware/crazyflie-firmware-sitl-6a4d2d0.tar.xz \
         --fw-pairs 5 [--speeds ...] [--modes app,shield,app_shield]
 
+Each real-firmware flight is kept in build/bench-cache/shield_firmware_flights (per cf2 build key, mode, speed
+and pair) and read instead of flown again, so the pairs per speed accumulate over runs.
+
 Writes bench/results/shield.json (fast) and bench/results/shield_firmware.json (--firmware).
 """
 
@@ -55,7 +58,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import print_table, write_json  # noqa: E402
+from common import CACHE, print_table, write_json  # noqa: E402
 
 RADIUS = 0.1
 N_POLYS = 150
@@ -96,10 +99,29 @@ def fly_cell(job: dict) -> dict:
     }
 
 
-def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app", "shield"), done=None) -> list[dict]:
+FW_STORE = CACHE / "shield_firmware_flights"  # one JSON (+ jerk .npy) per real-firmware flight
+
+
+def _flight_record(t) -> dict:
+    """What the rows need of one firmware Trial (JSON-able; the jerk samples go beside it)."""
+    return {"outcome": t.outcome, "success": bool(t.success), "time_s": float(t.time_s),
+            "collisions": int(t.collisions), "min_clearance_m": float(t.min_clearance_m), "shield": t.shield,
+            "landed": bool(t.extra.get("landed")), "sitl_reruns": int(t.extra.get("sitl_reruns", 0)),
+            "rtf": float(t.extra.get("rtf") or 0.0)}
+
+
+def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app", "shield"), done=None,
+                       store: Path | None = FW_STORE) -> list[dict]:
     """The real-firmware rows (module docstring) for ``modes`` (those of ``--modes``), flown one after the other
     (each SITL is lock-stepped at up to real time: parallel instances only slow each other). ``done(rows)`` is
-    called after each cell, with the rows so far."""
+    called after each cell, with the rows so far.
+
+    Each flight is kept in ``store`` under its cf2 build's cache key (app sources, header, flags), mode, speed
+    and pair number, and a flight already there is read instead of flown: a real-firmware flight takes 20-40 s
+    of wall time, so the 100 pairs per speed accumulate over runs (``--fw-pairs`` only adds pairs). A change to
+    the app or the header makes a new key, so old flights are never mixed in."""
+    import json
+
     from bench_sim import arena
 
     from polycc.sim.firmware.build import build_cf2
@@ -114,37 +136,55 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
         builds[True] = build_cf2(tree, header, log=say)
     if not all(braked.values()):
         builds[False] = build_cf2(tree, header, extra_cflags=["-DPOLYCC_APP_BRAKE_ACC=0.0f"], log=say)
+    if store is not None:
+        store.mkdir(parents=True, exist_ok=True)
     rows = []
     for speed in speeds:
         for mode in modes:
             t0 = time.perf_counter()
             shield = mode in ("shield", "app_shield")
-            fw = FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=builds[braked[mode]])
+            build = builds[braked[mode]]
+            fw = None
             cfg = FlightConfig(vmax=speed, radius=RADIUS if mode == "app" else 0.2, clearance_radius=RADIUS,
                                shield=shield, shield_radius=RADIUS)
-            trials = []
+            recs, jerks, flown = [], [], 0
             for k, (s0, g) in enumerate(pairs):
-                t = fw.fly(s0, g, cfg)
-                trials.append(t)
-                say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)}: {t.outcome}, clearance "
-                    f"{t.min_clearance_m:+.3f} m, {t.time_s:.1f} s")
-            ok = [t for t in trials if t.success]
-            jerk = np.concatenate([t.jerk for t in trials if t.jerk is not None and len(t.jerk)] or [np.zeros(1)])
-            sh = [t.shield for t in trials if t.shield]
+                stem = None if store is None else store / f"{build.key[:16]}_{mode}_{speed:g}_{k:03d}"
+                if stem is not None and stem.with_suffix(".json").is_file():
+                    rec = json.loads(stem.with_suffix(".json").read_text())
+                    jerk = np.load(stem.with_suffix(".npy"))
+                else:
+                    fw = fw or FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=build)
+                    t = fw.fly(s0, g, cfg)
+                    rec = _flight_record(t)
+                    jerk = np.asarray(t.jerk if t.jerk is not None else np.zeros(0), np.float32)
+                    flown += 1
+                    if stem is not None:
+                        np.save(stem.with_suffix(".npy"), jerk)
+                        stem.with_suffix(".json").write_text(json.dumps(dict(rec, start=list(map(float, s0)),
+                                                                             goal=list(map(float, g)))))
+                    say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)}: {t.outcome}, clearance "
+                        f"{t.min_clearance_m:+.3f} m, {t.time_s:.1f} s")
+                recs.append(rec)
+                jerks.append(jerk)
+            ok = [r for r in recs if r["success"]]
+            jerk = np.concatenate([j for j in jerks if len(j)] or [np.zeros(1)]).astype(np.float64)
+            sh = [r["shield"] for r in recs if r["shield"]]
             per = (lambda k: float(np.mean([x[k] for x in sh]))) if sh else (lambda k: 0.0)
             rows.append({
                 "dynamics": "firmware", "speed": float(speed), "mode": mode, "psi_cap": 0.0, "gains": None,
-                "flights": len(trials), "goal": len(ok), "collisions": int(sum(t.collisions > 0 for t in trials)),
-                "min_clearance_m": float(min(t.min_clearance_m for t in trials)),
+                "flights": len(recs), "goal": len(ok), "collisions": int(sum(r["collisions"] > 0 for r in recs)),
+                "min_clearance_m": float(min(r["min_clearance_m"] for r in recs)),
                 "gap_p1": None, "gap_p50": None, "gap_p99": None,
                 "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
-                "time_to_goal_s": float(np.mean([t.time_s for t in ok])) if ok else float("nan"),
+                "time_to_goal_s": float(np.mean([r["time_s"] for r in ok])) if ok else float("nan"),
                 "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
                 "backups_per_flight": per("backups"), "eval_caps_per_flight": None,
-                "outcomes": {o: sum(t.outcome == o for t in trials) for o in ("goal", "stuck", "timeout")},
-                "landed": sum(bool(t.extra.get("landed")) for t in trials),
-                "sitl_reruns": sum(int(t.extra.get("sitl_reruns", 0)) for t in trials),
-                "rtf_mean": float(np.mean([t.extra.get("rtf") or 0.0 for t in trials])),
+                "outcomes": {o: sum(r["outcome"] == o for r in recs) for o in ("goal", "stuck", "timeout")},
+                "landed": sum(r["landed"] for r in recs),
+                "sitl_reruns": sum(r["sitl_reruns"] for r in recs),
+                "rtf_mean": float(np.mean([r["rtf"] for r in recs])),
+                "flown_now": flown, "build_key": build.key[:16],
                 "wall_s": time.perf_counter() - t0,
             })
             if done:
@@ -178,7 +218,8 @@ def main() -> int:
     ap.add_argument("--modes", default="app,shield", help="comma list of app, shield, nobrake, app_r2, app_shield "
                                                           "(module docstring)")
     ap.add_argument("--firmware", metavar="FWDIR", help="also fly the real firmware (CrazySim SITL tree or tarball)")
-    ap.add_argument("--fw-pairs", type=int, default=5, help="with --firmware: pairs per speed and mode (default 5)")
+    ap.add_argument("--fw-pairs", type=int, default=5, help="with --firmware: pairs per speed and mode (default 5); "
+                    "flights already in the store (build/bench-cache/shield_firmware_flights) are read, not flown")
     args = ap.parse_args()
     from bench_sim import pairs_for, write_header
 
