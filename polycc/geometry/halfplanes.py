@@ -187,14 +187,25 @@ def _dual_volume(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> fl
     edge = key[e0]
     if not np.array_equal(edge, key[e1]):  # not a closed triangulated surface: the general way
         return _dual_volume_sorted(facets, v, c, planes)
-    x, y = w[e0 % m].T, w[e1 % m].T
-    cr = np.empty((len(e0), 3))  # np.cross(x, y), the same products and differences
-    cr[:, 0] = x[1] * y[2] - x[2] * y[1]
-    cr[:, 1] = x[2] * y[0] - x[0] * y[2]
-    cr[:, 2] = x[0] * y[1] - x[1] * y[0]
+    cr = _cross(w[e0 % m], w[e1 % m])
     q, r = np.divmod(edge, n_planes)
     vol = np.abs(np.einsum("ij,ij->i", g[q], cr)).sum() + np.abs(np.einsum("ij,ij->i", g[r], cr)).sum()
     return float(vol / 6.0)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of two (N, 3) arrays, the same products and differences, without its axis handling."""
+    x, y = a.T, b.T
+    cr = np.empty((len(a), 3))
+    cr[:, 0] = x[1] * y[2] - x[2] * y[1]
+    cr[:, 1] = x[2] * y[0] - x[0] * y[2]
+    cr[:, 2] = x[0] * y[1] - x[1] * y[0]
+    return cr
+
+
+def _norms(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(a, axis=1, keepdims=True)`` of a real (N, 3) array, the same sums."""
+    return np.sqrt(np.add.reduce(a * a, axis=1, keepdims=True))
 
 
 def _dual_volume_sorted(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray) -> float | None:
@@ -209,21 +220,22 @@ def _dual_volume_sorted(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray
     cnt = np.bincount(p, minlength=n_planes).astype(np.float64)
     if np.count_nonzero(cnt >= 3) < MIN_PLANES:
         return None
-    g = np.stack([np.bincount(p, weights=w[i, k], minlength=n_planes) for k in range(3)], axis=1)
+    g = np.bincount((p[:, None] * 3 + _AXES).ravel(), weights=w[i].ravel(),
+                    minlength=3 * n_planes).reshape(n_planes, 3)
     g /= np.maximum(cnt, 1.0)[:, None]  # face means, relative to c
-    n = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    n = planes[:, :3] / _norms(planes[:, :3])
     helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(n, e1)
+    e1 = _cross(n, np.broadcast_to(helper, n.shape))
+    e1 /= _norms(e1)
+    e2 = _cross(n, e1)
     r = w[i] - g[p]
     x = np.einsum("ij,ij->i", r, e1[p])
     y = np.einsum("ij,ij->i", r, e2[p])
     order = np.lexsort((np.arctan2(y, x), p))  # each face's vertices in angular order around its mean
     p, x, y = p[order], x[order], y[order]
-    start = np.r_[0, np.flatnonzero(np.diff(p)) + 1]
+    start = np.concatenate([[0], np.flatnonzero(np.diff(p)) + 1])
     nxt = np.arange(1, len(p) + 1)
-    nxt[np.r_[start[1:], len(p)] - 1] = start  # the last vertex of a face is followed by its first
+    nxt[np.concatenate([start[1:], [len(p)]]) - 1] = start  # the last vertex of a face is followed by its first
     cross = x * y[nxt] - x[nxt] * y
     area = np.bincount(p, weights=cross, minlength=n_planes) * 0.5
     height = np.einsum("ij,ij->i", g, n)  # distance of each face's plane from c (g lies on the face)
