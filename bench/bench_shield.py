@@ -149,10 +149,11 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
                                shield=shield, shield_radius=RADIUS)
             recs, jerks, flown = [], [], 0
             for k, (s0, g) in enumerate(pairs):
-                stem = None if store is None else store / f"{build.key[:16]}_{mode}_{speed:g}_{k:03d}"
-                if stem is not None and stem.with_suffix(".json").is_file():
-                    rec = json.loads(stem.with_suffix(".json").read_text())
-                    jerk = np.load(stem.with_suffix(".npy"))
+                # (no Path.with_suffix: "0.5" has a dot)
+                stem = None if store is None else str(store / f"{build.key[:16]}_{mode}_{speed:g}ms_{k:03d}")
+                if stem is not None and Path(stem + ".json").is_file():
+                    rec = json.loads(Path(stem + ".json").read_text())
+                    jerk = np.load(stem + ".npy")
                 else:
                     fw = fw or FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=build)
                     t = fw.fly(s0, g, cfg)
@@ -160,9 +161,9 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
                     jerk = np.asarray(t.jerk if t.jerk is not None else np.zeros(0), np.float32)
                     flown += 1
                     if stem is not None:
-                        np.save(stem.with_suffix(".npy"), jerk)
-                        stem.with_suffix(".json").write_text(json.dumps(dict(rec, start=list(map(float, s0)),
-                                                                             goal=list(map(float, g)))))
+                        np.save(stem + ".npy", jerk)
+                        Path(stem + ".json").write_text(json.dumps(dict(rec, start=list(map(float, s0)),
+                                                                       goal=list(map(float, g)))))
                     say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)}: {t.outcome}, clearance "
                         f"{t.min_clearance_m:+.3f} m, {t.time_s:.1f} s")
                 recs.append(rec)
