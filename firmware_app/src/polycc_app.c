@@ -668,7 +668,6 @@ static float brakeSpeed(float vmax, bool fresh)
     return s < vmax ? s : vmax;
 }
 
-/* Why the app may not take control now (POLYCC_STATUS_OK if it may). */
 /* The radius the filter flies with this tick (POLYCC_APP_KEEPOUT_SLACK): polycc.radius, rising towards the
  * shield's keep-out as the previous tick's clearance allows.  fresh: the previous tick evaluated the kernel at
  * lRadius, so trace.out.psi + lRadius is its clearance. */
@@ -694,6 +693,7 @@ static float flightRadius(bool fresh)
     return r;
 }
 
+/* Why the app may not take control now (POLYCC_STATUS_OK if it may). */
 static uint8_t mayTakeControl(void)
 {
     if (tooSlow()) {

@@ -113,8 +113,8 @@ uint32_t polycc_controller_max_evals(void);
 /* Certified worst case of one plan, Cortex-M4 cycles (cycle model; <= the period's share). */
 uint32_t polycc_controller_plan_worst_cycles(void);
 /* The shield's keep-out, m: polyccShield.radius + polyccShield.tube while polyccShield.enable is set, else 0.
- * The go-to-goal app flies with at least this radius, so that its own filter stops where the shield lets
- * it, instead of driving into the shield's margin and being braked there. */
+ * The go-to-goal app's radius rises to this as its clearance allows (polycc_app.h POLYCC_APP_KEEPOUT_SLACK), so
+ * that its own filter stops where the shield lets it, instead of driving into the shield's margin. */
 float polycc_controller_keepout(void);
 
 /* Counters and the last decision (log group polyccShield; for tests and the SITL). */
