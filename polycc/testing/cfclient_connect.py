@@ -60,6 +60,22 @@ def main(argv: list[str] | None = None) -> int:
     ui.show()
     battery: list[float] = []
     ui.batteryUpdatedSignal.connect(lambda _ts, data, _conf: battery.append(float(data["pm.vbat"])))
+    # Where a connection stalls: cflib's setup runs link -> platform info -> log TOC -> memories -> param TOC
+    # (-> connected); each stage's callback is looked up on the instance when it is due, so wrapping records it.
+    t0 = time.monotonic()
+    stages: list[list] = []
+
+    def _stage(name, fn):
+        def wrapped(*a, **k):
+            stages.append([name, round(time.monotonic() - t0, 2)])
+            return fn(*a, **k)
+        return wrapped
+
+    ui.cf.link_established.add_callback(lambda _uri: stages.append(["link", round(time.monotonic() - t0, 2)]))
+    for name in ("_platform_info_fetched", "_log_toc_updated_cb",
+                 "_mems_updated_cb", "_param_toc_updated_cb"):
+        if hasattr(ui.cf, name):
+            setattr(ui.cf, name, _stage(name.strip("_").removesuffix("_cb"), getattr(ui.cf, name)))
     cm = ui._connectivity_manager
     combo = cm._ui_elements[0].interface_combo
     result = {"uri": args.uri, "connected": False, "found": [], "errors": errors, "warnings": warnings}
@@ -81,10 +97,18 @@ def main(argv: list[str] | None = None) -> int:
         if not pump(3.0, found) and ui.uiState != UIState.SCANNING:
             ui._scan_from_button(cm.get_address())
     result["found"] = [combo.itemText(i) for i in range(1, combo.count())]
+    result["found_s"] = round(time.monotonic() - t0, 2)
     if found():
         combo.setCurrentText(args.uri)
+        stages.append(["click Connect", result["found_s"]])
         cm._ui_elements[0].connect_button.click()
         result["connected"] = pump(max(1.0, deadline - time.monotonic()), lambda: ui.uiState == UIState.CONNECTED)
+    result["stages"] = stages  # [stage, s since start]
+    result["ui_state"] = str(ui.uiState)
+    result["cf_state"] = ui.cf.state
+    if not result["connected"]:
+        result["toc_sizes"] = {k: sum(len(g) for g in getattr(getattr(sub, "toc", None), "toc", {}).values())
+                               for k, sub in (("log", ui.cf.log), ("param", ui.cf.param))}
     if result["connected"]:
         pump(args.seconds)
         result["params"] = len(ui.cf.param.toc.toc)  # groups
