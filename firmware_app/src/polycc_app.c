@@ -212,18 +212,42 @@ static void sendVelocity(float vx, float vy, float vz)
     holding = false;
 }
 
+/* The PID cascade flies the setpoints: the stock PID controller, or the shield's out-of-tree controller,
+ * which runs the same PID after the shield (polycc_controller.c). */
+static bool runsPid(void)
+{
+#ifdef CONFIG_CONTROLLER_OOT
+    if (controllerGetType() == ControllerTypeOot) {
+        return true;
+    }
+#endif
+    return controllerGetType() == ControllerTypePID;
+}
+
+/* posCtl.Zi, the PID position controller's z integral output, m/s (0 without it). */
+static float zIntegral(void)
+{
+    float zi = haveZi ? logGetFloat(idZi) : 0.0f;
+    return zi == zi ? zi : 0.0f;
+}
+
+float polycc_app_pid_zi(void)
+{
+    return runsPid() ? zIntegral() : 0.0f;
+}
+
 /* Metres to subtract from a position hold's z so that the PID position controller's stale z integral
  * (posCtl.Zi) is cancelled: its velocity command is then zKp (z_hold - z), a pure proportional hold
- * (polycc_app.h).  0 without the PID controller or the log variable. */
+ * (polycc_app.h).  0 without the PID cascade or the log variable. */
 static float ziOffset(void)
 {
     float zi, kp, off;
-    if (!haveZi || controllerGetType() != ControllerTypePID) {
+    if (!haveZi || !runsPid()) {
         return 0.0f;
     }
-    zi = logGetFloat(idZi);
+    zi = zIntegral();
     kp = haveZKp ? paramGetFloat(idZKp) : POLYCC_APP_POS_Z_KP;
-    if (!(kp > 0.1f) || !(zi == zi)) {
+    if (!(kp > 0.1f)) {
         return 0.0f;
     }
     off = zi / kp;
@@ -234,6 +258,11 @@ static float ziOffset(void)
         off = -POLYCC_APP_ZI_OFFSET_MAX;
     }
     return off;
+}
+
+float polycc_app_pid_zi_offset(void)
+{
+    return ziOffset();
 }
 
 /* Position hold at the point where the fallback began (x: the estimate now, if valid). */
@@ -268,12 +297,6 @@ static void readVector(logVarId_t a, logVarId_t b, logVarId_t c, bool have, floa
     out[0] = have ? logGetFloat(a) : 0.0f;
     out[1] = have ? logGetFloat(b) : 0.0f;
     out[2] = have ? logGetFloat(c) : 0.0f;
-}
-
-static float zIntegral(void)
-{
-    float zi = haveZi ? logGetFloat(idZi) : 0.0f;
-    return zi == zi ? zi : 0.0f;
 }
 
 /* The hold of a settling hand-over: the high-level go_to to holdPos, then the priority relaxed. */
@@ -314,7 +337,7 @@ static void handOverHold(void)
         return;
     }
     if (settling) {
-        if (controllerGetType() == ControllerTypePID && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI &&
+        if (runsPid() && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI &&
             xTaskGetTickCount() - settleStart < M2T(POLYCC_APP_SETTLE_MAX_MS)) {
             holdPosition(0);
             return;
@@ -349,7 +372,7 @@ static void handOverHold(void)
         trace.handover[i] = s > 0.0f ? x[i] + v[i] * (d / s) : x[i];
     }
     trace.handover[3] = T;
-    if (haveZi && controllerGetType() == ControllerTypePID && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI) {
+    if (haveZi && runsPid() && fabsf(zIntegral()) > POLYCC_APP_SETTLE_ZI) {
         memcpy(holdPos, trace.handover, sizeof holdPos);
         holding = true;
         settling = true;
@@ -702,11 +725,7 @@ static uint8_t mayTakeControl(void)
     if (supervisorIsLocked() || supervisorIsCrashed() || supervisorIsTumbled()) {
         return POLYCC_STATUS_SUPERVISOR;
     }
-    if (controllerGetType() != ControllerTypePID
-#ifdef CONFIG_CONTROLLER_OOT
-        && controllerGetType() != ControllerTypeOot /* the shield's controller wraps the PID */
-#endif
-    ) {
+    if (!runsPid()) {
         return POLYCC_STATUS_BAD_CONTROLLER;
     }
     if (engaged) {

@@ -171,12 +171,18 @@ const polycc_shield_job_t *polycc_controller_job(void)
     return &job;
 }
 
-/* The velocity u the PID cascade aims for under sp (world frame), and sv the setpoint's own velocity (its
- * feed-forward, world frame); false for manual setpoints. */
-static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_deg, float u[3], float sv[3])
+/* The velocity u the PID cascade aims for under sp (world frame), and sv the setpoint's own velocity (world
+ * frame); false for manual setpoints.  Under a position setpoint the PID's position loop commands
+ * kp (setpoint - estimate) + its integral output (z: zi, posCtl.Zi, m/s), limited, and does not feed the
+ * setpoint's velocity forward (position_controller_pid.c): predicting it with the feed-forward or without the
+ * integral made the shield expect motion the vehicle did not make (a hold 0.13 m below a vehicle whose
+ * take-off had wound Zi up read as a 0.27 m/s descent; real-firmware SITL). */
+static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_deg, float zi, float u[3],
+                            float sv[3])
 {
     const stab_mode_t m[3] = {sp->mode.x, sp->mode.y, sp->mode.z};
     const float spp[3] = {sp->position.x, sp->position.y, sp->position.z};
+    const float integ[3] = {0.0f, 0.0f, zi};
     int i;
     sv[0] = sp->velocity.x;
     sv[1] = sp->velocity.y;
@@ -191,7 +197,7 @@ static bool desiredVelocity(const setpoint_t *sp, const float pos[3], float yaw_
         sv[1] = s * bx + c * by;
     }
     for (i = 0; i < 3; ++i) {
-        u[i] = m[i] == modeAbs ? clampf(sv[i] + POLYCC_SHIELD_POS_KP * (spp[i] - pos[i]), -POLYCC_SHIELD_POS_VMAX,
+        u[i] = m[i] == modeAbs ? clampf(POLYCC_SHIELD_POS_KP * (spp[i] - pos[i]) + integ[i], -POLYCC_SHIELD_POS_VMAX,
                                         POLYCC_SHIELD_POS_VMAX)
                                : sv[i];
     }
@@ -205,7 +211,10 @@ static float brakeErr(void)
     return POLYCC_SHIELD_A_XY / POLYCC_SHIELD_K_V;
 }
 
-/* The backup near rest: hold the position (all three axes) where the vehicle got slow. */
+/* The backup near rest: hold the position (all three axes) where the vehicle got slow.  The z setpoint is
+ * lowered by the PID's z integral offset (polycc_app_pid_zi_offset), as the app's own holds are: otherwise a
+ * wound-up integral climbs the vehicle by Zi / zKp (0.13 m towards a ceiling after a take-off; real-firmware
+ * SITL, where the climb was braked as backups). */
 static void overrideHold(setpoint_t *sp, const float hold[3])
 {
     sp->mode.x = modeAbs;
@@ -213,7 +222,7 @@ static void overrideHold(setpoint_t *sp, const float hold[3])
     sp->mode.z = modeAbs;
     sp->position.x = hold[0];
     sp->position.y = hold[1];
-    sp->position.z = hold[2];
+    sp->position.z = hold[2] - polycc_app_pid_zi_offset();
     sp->velocity.x = 0.0f;
     sp->velocity.y = 0.0f;
     sp->velocity.z = 0.0f;
@@ -296,7 +305,7 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
                               float yaw_deg, uint32_t tick)
 {
     float ud[3] = {0.0f, 0.0f, 0.0f}, sv[3], ub[3];
-    bool manual = !desiredVelocity(sp, pos, yaw_deg, ud, sv), isOn;
+    bool manual = !desiredVelocity(sp, pos, yaw_deg, polycc_app_pid_zi(), ud, sv), isOn;
     const float gx = sp->mode.x == modeAbs ? sp->position.x - pos[0] : 0.0f;
     const float gy = sp->mode.y == modeAbs ? sp->position.y - pos[1] : 0.0f;
     decision_t d;

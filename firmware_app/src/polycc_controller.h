@@ -91,9 +91,12 @@
 /* At the tube's edge (psi < tube + this, m), a plan for a desired velocity within 60 deg of psi's gradient
  * keeps psi >= last psi - this instead of >= tube (floor 0): a vehicle held at psi = tube can leave. */
 #define POLYCC_SHIELD_ESCAPE_DEPTH 0.005f
-/* The stock PID's position loop as the shield predicts it (posCtlPid kp 2 1/s, 1 m/s). */
+/* The stock PID's position loop as the shield predicts it (position_controller_pid.c): under a position
+ * setpoint its velocity command is kp (setpoint - estimate) plus the integral output (posCtl.Zi in z; the x, y
+ * integral gains are 0 by default), limited to xVelMax * velMaxOverhead = 1 m/s * 1.10; the setpoint's own
+ * velocity is not fed forward (posCtlPid kp 2 1/s). */
 #define POLYCC_SHIELD_POS_KP 2.0f
-#define POLYCC_SHIELD_POS_VMAX 1.0f
+#define POLYCC_SHIELD_POS_VMAX 1.1f
 /* A live setpoint passes unchanged under a "pass" decision only while its desired velocity stays
  * within this of the one the decision certified (m/s, per component). */
 #define POLYCC_SHIELD_PASS_TOL 0.05f
@@ -116,6 +119,12 @@ uint32_t polycc_controller_plan_worst_cycles(void);
  * The go-to-goal app's radius rises to this as its clearance allows (polycc_app.h POLYCC_APP_KEEPOUT_SLACK), so
  * that its own filter stops where the shield lets it, instead of driving into the shield's margin. */
 float polycc_controller_keepout(void);
+
+/* Hooks into the app (polycc_app.c) for the PID's z integral: posCtl.Zi, m/s (0 when the PID cascade does
+ * not fly the setpoints or the variable is missing), and the offset Zi / zKp (m, capped) a position hold's z
+ * subtracts so that the PID holds where the hold says. */
+float polycc_app_pid_zi(void);
+float polycc_app_pid_zi_offset(void);
 
 /* Counters and the last decision (log group polyccShield; for tests and the SITL). */
 typedef struct polycc_controller_trace {

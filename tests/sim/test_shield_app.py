@@ -381,3 +381,69 @@ def test_a_late_app_task_does_not_stall_a_landing(floor_header, dynamics):
     assert not m.motors_on and STATUS["landing"] in seen
     assert z_cut < 0.03, f"the motors stopped {z_cut:.3f} m above the floor"
     assert abs(float(m.dyn.p[0])) < 0.05 and abs(float(m.dyn.p[1])) < 0.05  # straight down
+
+
+def _hover_at(m, p, v=(0.0, 0.0, 0.0), seconds: float = 0.3) -> None:
+    """A client's position setpoints at p (with velocity v, which the PID does not feed forward)."""
+    for _ in range(int(seconds * 1000)):
+        if m.sim_ms % 10 == 0:
+            m._set_client(True, mode=(1, 1, 1), p=p, v=v)
+        m.step()
+
+
+def test_the_shield_predicts_the_pids_position_loop_with_its_z_integral_and_no_feed_forward(header):
+    """Regression (issue 18, real-firmware SITL): the shield predicted a position setpoint's velocity as
+    sv + kp (p_sp - p), where the firmware's PID (position_controller_pid.c) flies kp (p_sp - p) + its integral
+    output and no feed-forward. After a take-off had wound posCtl.Zi up, the app's hold 0.13 m below the vehicle
+    read as a 0.27 m/s descent that never came. Now the desired velocity is the PID's own law with posCtl.Zi."""
+    m = _model(header)
+    lib = m.app.lib
+    zi = 0.06  # m/s
+    lib.shim_set_position_integrator(zi)
+    _hover_at(m, (0.1, 0.0, 0.95), v=(0.5, 0.0, -0.3))
+    job = lib.polycc_controller_job()
+    p = np.array([getattr(job, "in")[0][i] for i in range(3)], np.float32)
+    kp = np.float32(2.0)
+    want = [kp * (np.float32(0.1) - p[0]), kp * (np.float32(0.0) - p[1]),
+            kp * (np.float32(0.95) - p[2]) + np.float32(zi)]
+    got = [float(job.u_d[i]) for i in range(3)]
+    assert np.allclose(got, want, atol=1e-6), (got, want)  # with the feed-forward: x + 0.5, z - 0.3
+
+
+def test_the_shields_hold_cancels_the_pids_z_integral(header):
+    """Regression (issue 18, real-firmware SITL): the backup's position hold set z = where the vehicle got slow,
+    and a wound-up posCtl.Zi then climbed it Zi / zKp (0.13 m, towards the ceiling) against the hold. The hold's
+    z is now lowered by Zi / zKp, as the app's own holds are, so the PID holds where the shield says."""
+    x0 = WALL_X - R - 0.03  # 3 cm of clearance: below the tube (5 cm), every plan is a backup
+    m = _model(header, start=(x0, 0.0, 1.0))
+    lib = m.app.lib
+    zi = 0.1  # m/s: 5 cm at zKp = 2 1/s
+    lib.shim_set_position_integrator(zi)
+    _hover_at(m, (x0, 0.0, 1.0))
+    assert _trace(m).status == STATUS["backup"] and _trace(m).backups > 0
+    sp = m._sp
+    assert (sp.mode_x, sp.mode_y, sp.mode_z) == (1, 1, 1), "held in position"
+    assert abs(sp.pz - (1.0 - zi / 2.0)) < 1e-6, f"hold z {sp.pz:.3f}"  # held where it was at rest: z = 1 m
+    lib.shim_set_position_integrator(0.0)
+    _hover_at(m, (x0, 0.0, 1.0), seconds=0.05)
+    assert abs(sp.pz - 1.0) < 1e-6
+
+
+@pytest.mark.parametrize("controller", ["PID", "Oot"])
+def test_the_apps_hold_cancels_the_pids_z_integral_under_the_shields_controller_too(header, controller):
+    """Regression (issue 18, real-firmware SITL): the app lowered its position holds by posCtl.Zi / zKp only
+    under stabilizer.controller = PID; under the shield's out-of-tree controller, which runs the same PID, its
+    hold was left to the wound-up integral. Both now hold where the hold says."""
+    x0 = WALL_X - 0.05  # inside the app's radius (0.1 m): psi < 0, the app holds where it is
+    m = _model(header, start=(x0, 0.0, 1.0), shield=False)
+    lib = m.app.lib
+    m.app.set_param("stabilizer", "controller", int(getattr(lib, f"ControllerType{controller}")))
+    zi = 0.1  # m/s: 5 cm at zKp = 2 1/s
+    lib.shim_set_position_integrator(zi)
+    for name, v in (("goalX", 0.0), ("goalY", 0.0), ("goalZ", 1.0), ("enable", 1)):
+        m.app.set_param("polycc", name, v)
+    for _ in range(300):
+        m.step()
+    sp = m._sp
+    assert (sp.mode_x, sp.mode_y, sp.mode_z) == (1, 1, 1), "the app holds its position"
+    assert abs(sp.pz - (1.0 - zi / 2.0)) < 1e-3, f"hold z {sp.pz:.4f}"
