@@ -615,22 +615,36 @@ def test_p2p_radio_on_the_real_firmware(arena):
                 def hear(rec: bytes, port: int = P2P_PORT) -> None:
                     ear.sendto(hdr + bytes([port]) + rec, air.address)
 
-                def logs_reach(**want) -> bool:
-                    return w.wait_until(lambda: all(latest.get(f"polycc.{k}") == v for k, v in want.items()), 10.0)
+                def logs(*keys) -> tuple:
+                    return tuple(latest.get(f"polycc.{k}") for k in keys)
 
+                def heard_once_more(rec: bytes, counter: str, **same) -> None:
+                    """Send ``rec`` until ``counter`` rises; the other logged counters stay ``same``. A P2P
+                    broadcast is unacknowledged on the nRF too, and one record in ~700 CI runs was lost on the
+                    way (host UDP, the firmware's 5-deep CRTP RX queue): what is tested is what a record that
+                    arrives does, so a lost one is sent again; a late duplicate only raises ``counter`` more."""
+                    base = latest.get(f"polycc.{counter}")
+                    for _ in range(5):
+                        hear(rec)
+                        if w.wait_until(lambda: latest.get(f"polycc.{counter}") != base, 2.0):
+                            break
+                    w.sleep(0.3)  # a log period or more after the change: the other counters are current
+                    assert latest.get(f"polycc.{counter}") > base, (counter, latest)
+                    assert logs(*same) == tuple(same.values()), (same, latest)
+
+                assert w.wait_until(lambda: logs("nNbr", "p2pRx", "p2pDrop") == (0, 0, 0), 10.0), latest
                 nb = np.asarray(truth) + np.array([1.0, 0.0, 0.5])
-                hear(pack_neighbour(9, nb, 10, 0.1))
-                assert logs_reach(nNbr=1, p2pRx=1, p2pDrop=0), latest
-                # one at a time: sent back to back, one of the three was once lost on a loaded CI host (p2pDrop
-                # stayed 1; the refusals are what is tested here, not a burst through the bridge)
-                hear(pack_neighbour(5, nb, 10, 0.1))  # own id
-                assert logs_reach(nNbr=1, p2pRx=1, p2pDrop=1), latest
-                hear(pack_forget(9))  # a P2P record never removes a neighbour
-                assert logs_reach(nNbr=1, p2pRx=1, p2pDrop=2), latest
-                hear(pack_neighbour(10, nb, 10, 0.1), port=P2P_PORT + 1)  # another app's P2P port
-                assert logs_reach(nNbr=1, p2pRx=1, p2pDrop=2), latest
-                w.sleep(0.5)  # the packet on the other port has long been handled: still not counted
-                assert (latest["polycc.nNbr"], latest["polycc.p2pRx"], latest["polycc.p2pDrop"]) == (1, 1, 2)
+                heard_once_more(pack_neighbour(9, nb, 10, 0.1), "p2pRx", nNbr=1, p2pDrop=0)
+                rx = latest["polycc.p2pRx"]
+                heard_once_more(pack_neighbour(5, nb, 10, 0.1), "p2pDrop", nNbr=1, p2pRx=rx)  # own id
+                drop = latest["polycc.p2pDrop"]
+                heard_once_more(pack_forget(9), "p2pDrop", nNbr=1, p2pRx=rx)  # a P2P record never removes one
+                drop2 = latest["polycc.p2pDrop"]
+                assert drop2 > drop >= 1
+                for _ in range(3):  # another app's P2P port: however many arrive, none is counted
+                    hear(pack_neighbour(10, nb, 10, 0.1), port=P2P_PORT + 1)
+                w.sleep(1.0)  # the packets on the other port have long been handled: still not counted
+                assert logs("nNbr", "p2pRx", "p2pDrop") == (1, rx, drop2), latest
                 assert latest["polycc.p2pTx"] >= 10
                 lc.stop()
             finally:
