@@ -132,9 +132,7 @@ def grid_box(packed: PackedScene, delta: float, cache: dict | None = None) -> tu
     return lo, hi
 
 
-def _default_cost(polys, planes):
-    """A proxy of the cycle model (polycc.budget.cycle_model.indexed_cycles) for callers without it."""
-    return 250.0 * np.asarray(polys, np.float64) + 70.0 * np.asarray(planes, np.float64)
+_OCTANT_BITS = ((np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1).astype(bool)  # (8, 3): octant o's signs
 
 
 def _ball_lb(dbox, R, ig):
@@ -166,8 +164,9 @@ class _Geometry:
         cand = np.asarray(cand, np.int64)
         if len(cand) == 0:
             return np.zeros((len(centres), 0), bool), np.zeros((len(centres), 0), np.int64)
-        rows = np.concatenate([np.arange(self.first[k], self.first[k] + self.count[k]) for k in cand])
-        seg = np.r_[0, np.cumsum(self.count[cand])[:-1]]
+        cnt = self.count[cand]
+        seg = np.cumsum(cnt) - cnt
+        rows = np.arange(int(seg[-1] + cnt[-1])) + np.repeat(self.first[cand] - seg, cnt)
         pm = self.pm[rows]
         g = centres @ pm[:, :3].T - pm[:, 3]
         tol = _CUSHION * (1.0 + np.abs(centres).sum(axis=1)[:, None] + np.abs(pm[:, 3])[None, :])
@@ -175,14 +174,14 @@ class _Geometry:
         LBp = g - h * self.w1[rows] - tol
         UB = np.maximum.reduceat(UBp, seg, axis=1)
         LB = np.maximum.reduceat(LBp, seg, axis=1)
-        owner = np.repeat(np.arange(len(cand)), self.count[cand])
+        owner = np.repeat(np.arange(len(cand)), cnt)
         # the lead plane the kernel scans first is the one of the octant of p - c_k; over the box only
         # the octants whose signs occur there are possible (-0.0 counts negative, as in the kernel)
         cc = self.c[cand]
         pos = (centres[:, None, :] + h) >= cc[None]  # u_i >= 0 possible
         neg = (centres[:, None, :] - h) <= cc[None]  # u_i <= 0 possible
-        bits = ((np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1).astype(bool)  # (8, 3)
-        allowed = np.all(np.where(bits[None, None], neg[:, :, None, :], pos[:, :, None, :]), axis=3)  # (m, J, 8)
+        # (m, J, 8): octant o possible over the box
+        allowed = np.all(np.where(_OCTANT_BITS[None, None], neg[:, :, None, :], pos[:, :, None, :]), axis=3)
         lead_rows = seg[:, None] + self.lead[cand]  # (J, 8)
         lead_lb = np.where(allowed, LBp[:, lead_rows], np.inf).min(axis=2)
         acc = np.add.reduceat((UBp > lead_lb[:, owner] - self.cut).astype(np.int64), seg, axis=1)
@@ -286,7 +285,9 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
         raise PolyccError("an index needs at least one polytope")
     if packed.n_planes > 65535:
         raise PolyccError("the index stores uint16 first-plane indices: at most 65535 half-planes")
-    cost = cost or (lambda m, planes, depth, acc: _default_cost(m, planes) + 120.0 * acc)
+    if cost is None:  # a proxy of the cycle model (polycc.budget.cycle_model.indexed_cycles), in Python floats
+        def cost(m, planes, depth, acc):
+            return 250.0 * m + 70.0 * planes + 120.0 * acc
     D = float(np.float32(cap))
     slack = index_slack(packed, kappa)
     lo, hi = box if box is not None else grid_box(packed, D + slack)
@@ -307,23 +308,24 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
     geo = _Geometry(packed, D, slack, eps, NEGLIGIBLE_NATS / kappa)
     listed, accs = geo.listed_grid(idx, centres, 0.5 * cell)
     count = geo.count
-    # nodes: [centre, half, depth, list (polytope indices) or None, children or None, expensive planes]
-    nodes = [[centres[i], 0.5 * cell, 0, np.nonzero(listed[i])[0], None, int(accs[i][listed[i]].sum())]
-             for i in range(len(centres))]
+    # nodes: [centre, half, depth, list (polytope indices) or None, children or None, expensive planes,
+    #         half-planes of the list, the list's key]
+    planes0 = listed.astype(np.int64) @ count
+    acc0 = (accs * listed).sum(axis=1)
+    nodes = []
+    for i in range(len(centres)):
+        lst = np.nonzero(listed[i])[0]
+        nodes.append([centres[i], 0.5 * cell, 0, lst, None, int(acc0[i]), int(planes0[i]), lst.tobytes()])
     refs: dict[bytes, int] = {}
-
-    def key(lst):
-        return np.asarray(lst, np.int64).tobytes()
-
     for nd in nodes:
-        refs[key(nd[3])] = refs.get(key(nd[3]), 0) + 1
-    entries = sum(len(np.frombuffer(k, np.int64)) for k in refs)
+        refs[nd[7]] = refs.get(nd[7], 0) + 1
+    entries = sum(len(k) // 8 for k in refs)
 
     def nbytes(n_inner):
         return index_bytes(len(centres), n_inner, len(refs), entries, n)
 
     def node_cost(nd):
-        return float(cost(len(nd[3]), int(count[nd[3]].sum()), nd[2], nd[5]))
+        return float(cost(len(nd[3]), nd[6], nd[2], nd[5]))
 
     heap = [(-node_cost(nd), i) for i, nd in enumerate(nodes) if len(nd[3])]
     heapq.heapify(heap)
@@ -340,30 +342,38 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
         kc = nd[0] + offs * nd[1]  # child centres (octant o: bit set = upper half)
         sub, sub_acc = geo.listed(kc, half, nd[3])
         kids = [nd[3][sub[o]] for o in range(8)]
-        kid_acc = [int(sub_acc[o][sub[o]].sum()) for o in range(8)]
-        # bytes after the split
-        new_refs = dict(refs)
-        new_entries = entries
-        k0 = key(nd[3])
-        new_refs[k0] -= 1
-        if new_refs[k0] == 0:
-            del new_refs[k0]
-            new_entries -= len(nd[3])
-        for kl in kids:
-            kk_ = key(kl)
-            if kk_ not in new_refs:
-                new_entries += len(kl)
-            new_refs[kk_] = new_refs.get(kk_, 0) + 1
-        if len(new_refs) + n_inner + 1 > 65535 or new_entries > 65535 or (
-                max_bytes is not None and index_bytes(len(centres), n_inner + 1, len(new_refs), new_entries, n)
+        kid_keys = [kl.tobytes() for kl in kids]
+        kid_acc = (sub_acc * sub).sum(axis=1).tolist()
+        kid_planes = (sub.astype(np.int64) @ count[nd[3]]).tolist()
+        # bytes after the split: the changed reference counts only (refs is not copied per split)
+        delta = {nd[7]: -1}
+        for kk_ in kid_keys:
+            delta[kk_] = delta.get(kk_, 0) + 1
+        new_len, new_entries = len(refs), entries
+        for kk_, d in delta.items():
+            old = refs.get(kk_, 0)
+            if old == 0 and old + d > 0:
+                new_len += 1
+                new_entries += len(kk_) // 8
+            elif old > 0 and old + d == 0:
+                new_len -= 1
+                new_entries -= len(kk_) // 8
+        if new_len + n_inner + 1 > 65535 or new_entries > 65535 or (
+                max_bytes is not None and index_bytes(len(centres), n_inner + 1, new_len, new_entries, n)
                 > max_bytes):
             break
         heapq.heappop(heap)
-        refs, entries = new_refs, new_entries
+        for kk_, d in delta.items():
+            v = refs.get(kk_, 0) + d
+            if v:
+                refs[kk_] = v
+            else:
+                del refs[kk_]
+        entries = new_entries
         n_inner += 1
         nd[4] = []
         for o in range(8):
-            child = [kc[o], half, nd[2] + 1, kids[o], None, kid_acc[o]]
+            child = [kc[o], half, nd[2] + 1, kids[o], None, kid_acc[o], kid_planes[o], kid_keys[o]]
             nd[4].append(len(nodes))
             nodes.append(child)
             if len(kids[o]):
@@ -371,21 +381,20 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
         nd[3] = None
     # ids: lists first (empty list first, then by length), internal nodes after them
     lists = sorted((np.frombuffer(k, np.int64) for k in refs), key=lambda x: (len(x), x.tolist()))
-    lid = {key(x): j for j, x in enumerate(lists)}
+    lid = {x.tobytes(): j for j, x in enumerate(lists)}
     inner = [i for i, nd in enumerate(nodes) if nd[4] is not None]
     nid = {i: len(lists) + j for j, i in enumerate(inner)}
 
     def ref(i):
         nd = nodes[i]
-        return nid[i] if nd[4] is not None else lid[key(nd[3])]
+        return nid[i] if nd[4] is not None else lid[nd[7]]
 
     cell_list = np.array([ref(i) for i in range(len(centres))], np.uint16)
     children = np.array([ref(c) for i in inner for c in nodes[i][4]], np.uint16)
     starts = np.r_[0, np.cumsum([len(x) for x in lists])].astype(np.uint16)
     ent = np.concatenate(lists).astype(np.uint16) if len(lists) and starts[-1] else np.zeros(0, np.uint16)
-    leaves = [nd for nd in nodes if nd[4] is None]
-    work = np.array([[lid[key(nd[3])], nd[2], len(nd[3]), int(count[nd[3]].sum()), nd[5]] for nd in leaves
-                     if len(nd[3])], np.int64).reshape(-1, 5)
+    work = np.array([[lid[nd[7]], nd[2], len(nd[3]), nd[6], nd[5]] for nd in nodes
+                     if nd[4] is None and len(nd[3])], np.int64).reshape(-1, 5)
     out = SceneIndex(np.asarray(origin, np.float32), float(cell), (nx, ny, nz), np.float32(D), cell_list,
                      starts, ent, geo.first.astype(np.uint16), float(kappa), children, work)
     assert out.nbytes() == nbytes(n_inner)
