@@ -93,10 +93,9 @@ def read(scene_path: str | Path, settings: SceneSettings, progress: Progress | N
 
 def check_size(scene: Scene, voxel: float, warn: Warn | None = None) -> None:
     """Before voxelizing: refuse a voxelization that cannot fit (one line, the fix), warn on a long one."""
-    est = estimate(scene.ellipsoids, voxel, timed=False)
-    err = size_error(est)
-    if err:
-        raise PolyccError(f"{scene.path}: {err}")
+    est = estimate(scene.ellipsoids, voxel, timed=False, at_least=False)
+    if size_error(est):  # the refusal names the lower bound too: counted only then
+        raise PolyccError(f"{scene.path}: {size_error(estimate(scene.ellipsoids, voxel, timed=False))}")
     if warn and (est.voxels_at_most > SLOW_VOXELS or est.huge_splats):
         big = (f"; {est.huge_splats:,} splats each span more than {HUGE_SPLAT_VOXELS:,} voxels (largest "
                f"{est.largest_splat_voxels:.3g})" if est.huge_splats else "")

@@ -44,12 +44,13 @@ def per_splat_voxels(ell: Ellipsoids, g: float) -> np.ndarray:
     return np.minimum(aabb, ellv)
 
 
-def estimate(ell: Ellipsoids, g: float, seed: int = 0, timed: bool = True) -> SizeEstimate:
+def estimate(ell: Ellipsoids, g: float, seed: int = 0, timed: bool = True, at_least: bool = True) -> SizeEstimate:
     """Voxel counts and time of voxelizing ``ell`` at voxel side ``g`` metres (``timed=False``: no timed
-    sample, the time from a nominal 10 M voxels/s)."""
+    sample, the time from a nominal 10 M voxels/s; ``at_least=False``: ``voxels_at_least`` is -1, not
+    counted, which saves a sort of the centres: 1.2 of 2.3 s on 6M splats)."""
     n = len(ell)
     w = per_splat_voxels(ell, g)
-    at_least = len(unique_rows(np.floor(ell.centers / g).astype(np.int64))) if n else 0  # 4x np.unique(axis=0)
+    at_least = (len(unique_rows(np.floor(ell.centers / g).astype(np.int64))) if n else 0) if at_least else -1
     huge = w > HUGE_SPLAT_VOXELS
     ordinary = np.flatnonzero(~huge)
     secs = 0.0
