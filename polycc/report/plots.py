@@ -42,7 +42,7 @@ def write_report(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Polygon
+    from matplotlib.collections import PolyCollection
 
     rng = np.random.default_rng(seed)
     pts = centers if len(centers) <= max_points else centers[rng.choice(len(centers), max_points, replace=False)]
@@ -62,12 +62,16 @@ def write_report(
             if polytope_vertices else np.zeros(0)
         dlo, dhi = float(lo[d]), float(hi[d])
         norm = plt.Normalize(dlo, max(dhi, dlo + 1e-9))
-        for i in np.argsort(near):
+        outlines, colours = [], []
+        for i in np.argsort(near):  # far first: a collection draws in its order (one artist, not one per polytope)
             o = _outline(polytope_vertices[i], a, b)
             if o is not None:
                 val = polytope_vertices[i][:, d].max() if sgn > 0 else polytope_vertices[i][:, d].min()
-                ax.add_patch(Polygon(o, closed=True, facecolor=(*cmap(norm(val))[:3], 0.85), edgecolor="0.15",
-                                     linewidth=0.25))
+                outlines.append(o)
+                colours.append((*cmap(norm(val))[:3], 0.85))
+        if outlines:
+            ax.add_collection(PolyCollection(outlines, closed=True, facecolors=colours, edgecolors="0.15",
+                                             linewidths=0.25))
         ax.set_xlim(lo[a] - 0.05, hi[a] + 0.05)
         ax.set_ylim(lo[b] - 0.05, hi[b] + 0.05)
         ax.set_aspect("equal")
