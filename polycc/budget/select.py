@@ -497,6 +497,7 @@ def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, pr
 PARALLEL_MIN_POLYTOPES = 500  # a family whose sub-cover is smaller is selected in this process (forks do not pay)
 PREFILL_ROUNDS = 10  # rounds of :meth:`_Realiser._prefill` (each one fork of the workers)
 PREFILL_CHUNKS = 4  # chunks per worker in a prefill round
+STREAMS_IN_PROCESS = 64  # a prefill round of at most this many streams runs in this process (the same records)
 PREFILL_OVERSHOOT = 1.25  # its guess of the next key takes this many more pending entries than drops missing
 _FORKED: dict = {}  # what forked workers read (set before the fork, so nothing big is pickled)
 
@@ -641,6 +642,12 @@ class _Realiser:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
         store = self.caches["drop_costs"]
+        if len(work) <= STREAMS_IN_PROCESS:  # a late prefill round: a fork of this process costs more than it
+            for k, st in enumerate(_streams_chunk(list(range(len(work))), store, work)):
+                store[work[k][0]] = st
+            if report:
+                report(len(work), len(work))
+            return
         order = sorted(range(len(work)), key=lambda k: -weights[k])
         chunks = _split(order, [weights[k] for k in order], PREFILL_CHUNKS * self.workers)
         _FORKED.clear()

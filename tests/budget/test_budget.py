@@ -388,13 +388,17 @@ def test_a_rate_miss_caps_the_planes_of_every_n():
 
 def test_the_selection_does_not_depend_on_the_workers(built4, monkeypatch):
     """The drop costs computed in forked workers and the candidates realised there give the same
-    candidates, bit for bit, as one process (every family counts as large here)."""
+    candidates, bit for bit, as one process (every family counts as large here); with 2 workers every
+    prefill round is forked, with 3 every round runs in this process (STREAMS_IN_PROCESS)."""
     from polycc.budget import select as sel
     from polycc.cover.family import CoverFamily
 
     fam = CoverFamily.load(built4 / "out4")
     monkeypatch.setattr(sel, "PARALLEL_MIN_POLYTOPES", 1)
-    runs = [select(fam, Budget(3 * 1024), mc_samples=5000, normal_caps=(None, 24, 12), workers=w) for w in (1, 2, 3)]
+    runs = []
+    for w, in_process in ((1, 64), (2, 0), (3, 10**9)):
+        monkeypatch.setattr(sel, "STREAMS_IN_PROCESS", in_process)
+        runs.append(select(fam, Budget(3 * 1024), mc_samples=5000, normal_caps=(None, 24, 12), workers=w))
     ref = runs[0][1]
     assert any(c.dropped for c in ref) and any(c.max_normals is not None for c in ref)  # reduced, capped: real work
     for best, cands, _ in runs[1:]:
