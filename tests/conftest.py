@@ -35,10 +35,3 @@ def scenes_dir() -> Path:
     if not SCENES.is_dir():
         pytest.skip(f"real scenes not found at {SCENES} (clone with ../shared beside the repo)")
     return SCENES
-
-
-def pytest_collection_modifyitems(config, items):
-    """Tests marked slow first, otherwise in collection order (a stable sort, the same in every xdist worker).
-    With ``-n 2`` each worker takes the next test when it is free: longest first lets the many short tests
-    fill the end, instead of the suite waiting on a 4-minute firmware swarm test that started last."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
