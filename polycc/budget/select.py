@@ -495,7 +495,7 @@ def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, pr
 
 
 PARALLEL_MIN_POLYTOPES = 500  # a family whose sub-cover is smaller is selected in this process (forks do not pay)
-PREFILL_ROUNDS = 10  # rounds of :meth:`_Realiser._prefill` (each one fork of the workers)
+PREFILL_ROUNDS = 10  # rounds of :meth:`_Realiser._prefill` (each one fork of the workers, or none if small)
 PREFILL_CHUNKS = 4  # chunks per worker in a prefill round
 STREAMS_IN_PROCESS = 64  # a prefill round of at most this many streams runs in this process (the same records)
 PREFILL_OVERSHOOT = 1.25  # its guess of the next key takes this many more pending entries than drops missing
@@ -632,7 +632,8 @@ class _Realiser:
                                  for k, _, _, t in work])
 
     def _streams(self, work: list, weights: list[float], report: Callable[[int, int], None] | None = None) -> None:
-        """Run :func:`_streams_chunk` over ``work`` on ``workers`` forked processes and keep the results. The
+        """Run :func:`_streams_chunk` over ``work`` on ``workers`` forked processes (in this process when ``work``
+        has at most :data:`STREAMS_IN_PROCESS` streams) and keep the results. The
         work is cut into several chunks per worker, heaviest first by ``weights``, which the pool hands out as
         workers come free: a qhull's cost grows with the planes, and the number of pops a stream needs is
         only guessed, so fixed shares came out 1.4-2.4x apart."""
