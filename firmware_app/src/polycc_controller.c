@@ -309,6 +309,7 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
     const float gx = sp->mode.x == modeAbs ? sp->position.x - pos[0] : 0.0f;
     const float gy = sp->mode.y == modeAbs ? sp->position.y - pos[1] : 0.0f;
     decision_t d;
+    bool bridge;
     taskENTER_CRITICAL();
     memcpy(mbox.pos, pos, sizeof mbox.pos);
     memcpy(mbox.vel, vel, sizeof mbox.vel);
@@ -324,6 +325,15 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
         next.valid = false;
     }
     d = cur;
+    /* The current decision ran out while its successor is planned but not yet due: the app task planned
+     * late (its mailbox tick, hence its `from`, is past this decision's `to`).  The successor's plan modelled
+     * exactly this decision's command (its u_app) over its latency, n_lat = 3 periods from its estimate (20 ms
+     * of estimator delay, then the 10 ms to its `from`), so flying this decision on until the successor is due
+     * is what a certified plan modelled.  A
+     * successor that is itself a backup certifies nothing: brake as before.  Braking here instead was a
+     * 1-10 ms brake pulse whenever the app woke a tick late, which the PID position loop turned into 10 ms
+     * of the brake's tilt (jerk spikes of ~200 m/s^3 at 3 m/s in the real-firmware SITL on a busy host). */
+    bridge = d.valid && (int32_t)(tick - d.to) >= 0 && next.valid && !next.brake;
     isOn = on;
     taskEXIT_CRITICAL();
     if (!isOn) {
@@ -342,7 +352,10 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
     if (!d.valid) { /* just switched on: the first decision is on its way */
         return;
     }
-    if (d.land && (int32_t)(tick - d.to) >= 0 && (ud[2] < 0.0f || sv[2] < 0.0f) &&
+    if (bridge) {
+        trace.bridged += 1u;
+    }
+    if (d.land && !bridge && (int32_t)(tick - d.to) >= 0 && (ud[2] < 0.0f || sv[2] < 0.0f) &&
         vel[0] * vel[0] + vel[1] * vel[1] <= POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED) {
         /* A landing whose next decision is late (the app task did not run in time): the descent goes on
          * while the source still descends and the vehicle does not drift, as that decision would continue it
@@ -352,7 +365,10 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
         overrideLand(sp, d.at, ud[2]);
         return;
     }
-    if ((int32_t)(tick - d.to) >= 0 || d.brake) { /* the backup, or a decision not replaced in time */
+    if (((int32_t)(tick - d.to) >= 0 && !bridge) || d.brake) { /* the backup, or a decision not replaced in time */
+        if (!d.brake) {
+            trace.expired += 1u;
+        }
         if (!holding && (vel[0] * vel[0] + vel[1] * vel[1]) + vel[2] * vel[2] <=
                             POLYCC_SHIELD_HOLD_SPEED * POLYCC_SHIELD_HOLD_SPEED) {
             memcpy(holdAt, pos, sizeof holdAt);
@@ -600,6 +616,10 @@ LOG_ADD(LOG_UINT32, manual, &trace.manual)
 LOG_ADD(LOG_UINT32, landings, &trace.landings)
 /** @brief Plans made with the tube lowered to leave its edge (moving away from the nearest obstacle) */
 LOG_ADD(LOG_UINT32, escapes, &trace.escapes)
+/** @brief Ticks a decision was flown on past its end until its late, certified successor was due */
+LOG_ADD(LOG_UINT32, bridged, &trace.bridged)
+/** @brief Ticks braked because a decision ran out with no certified successor planned (the app task late) */
+LOG_ADD(LOG_UINT32, expired, &trace.expired)
 /** @brief psi at the last decision's estimate, m */
 LOG_ADD(LOG_FLOAT, psi, &lPsi)
 /** @brief Smallest psi - tube over the last plan's samples, m */

@@ -137,6 +137,8 @@ typedef struct polycc_controller_trace {
     uint32_t overrides;   /* ticks the setpoint was replaced */
     uint32_t landings;    /* decisions flown as a landing */
     uint32_t escapes;     /* plans made with the tube lowered to leave its edge */
+    uint32_t bridged;     /* ticks a decision was flown past its end, up to its late certified successor */
+    uint32_t expired;     /* ticks braked because a decision ran out with no certified successor planned */
     uint32_t last_flags;  /* POLYCC_SHIELD_* of the last finished plan */
     uint32_t last_evals;
     float last_min_c;     /* m */

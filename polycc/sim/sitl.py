@@ -254,7 +254,7 @@ class Simulator:
         if cfg.shield:
             tr = lib.polycc_controller_trace()
             keys = ("decisions", "certified", "backups", "infeasible", "manual", "eval_caps", "overrides", "landings",
-                    "escapes")
+                    "escapes", "bridged", "expired")
             trial.shield = {k: int(getattr(tr, k)) for k in keys}
         if io is not None:
             f3 = lambda k: np.asarray(io[k], np.float32).reshape(-1, 3)  # noqa: E731

@@ -45,7 +45,7 @@ LOG_VARS = (("stateEstimate.x", "float"), ("stateEstimate.y", "float"), ("stateE
 # cfg.shield: the shield's counters the firmware logs (group polyccShield, polycc_controller.c), and the
 # out-of-tree controller's number in the SITL fork's ControllerType enum (src/modules/interface/controller/
 # controller.h: AutoSelect, PID, Mellinger, INDI, Brescianini, Oot; upstream has Lee before Oot: 6)
-SHIELD_LOGS = ("decisions", "backups", "infeasible", "manual", "landings", "escapes")
+SHIELD_LOGS = ("decisions", "backups", "infeasible", "manual", "landings", "escapes", "bridged", "expired")
 SITL_OOT_CONTROLLER = 5
 SHIELD_HZ = 1000.0 / cycle_model.SHIELD_PERIOD_TICKS  # the shield's decisions per second (1 ms ticks)
 STARVED_SHARE = 0.9  # fewer shield decisions than this share of SHIELD_HZ per flown second: the app was starved
@@ -179,13 +179,16 @@ class FirmwareSimulator:
             with lock:
                 latest.update(data)
 
-        lc = LogConfig(name="polyccshield", period_in_ms=100)
-        for k in SHIELD_LOGS:
-            lc.add_variable(f"polyccShield.{k}", "uint32_t")
-        lc.data_received_cb.add_callback(on_log)
-        cf.log.add_config(lc)
-        lc.start()
-        return lc, lock, latest
+        blocks = []
+        for i in range(0, len(SHIELD_LOGS), 6):  # a log block holds 26 bytes: six uint32 counters each
+            lc = LogConfig(name=f"polyccshield{i // 6}", period_in_ms=100)
+            for k in SHIELD_LOGS[i:i + 6]:
+                lc.add_variable(f"polyccShield.{k}", "uint32_t")
+            lc.data_received_cb.add_callback(on_log)
+            cf.log.add_config(lc)
+            lc.start()
+            blocks.append(lc)
+        return blocks, lock, latest
 
     def _flight(self, sitl: FirmwareSitl, cf, start, goal, targets, cfg: FlightConfig):
         from cflib.crazyflie.log import LogConfig
@@ -273,7 +276,8 @@ class FirmwareSimulator:
         landed = sitl.wait_until(lambda: sitl.state()["on_ground"] and not sitl.state()["motors_on"], land_s + 5.0)
         lc.stop()
         if shield_log is not None:
-            shield_log[0].stop()
+            for lc in shield_log[0]:
+                lc.stop()
         traj = sitl.trajectory()
         sel = (traj[:, 0] >= t0) & (traj[:, 0] <= t_end + 1e-9)
         P = traj[sel, 1:4]
