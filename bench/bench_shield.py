@@ -171,7 +171,7 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
             ok = [r for r in recs if r["success"]]
             jerk = np.concatenate([j for j in jerks if len(j)] or [np.zeros(1)]).astype(np.float64)
             sh = [r["shield"] for r in recs if r["shield"]]
-            per = (lambda k: float(np.mean([x[k] for x in sh]))) if sh else (lambda k: 0.0)
+            per = (lambda k: float(np.mean([x.get(k, 0) for x in sh]))) if sh else (lambda k: 0.0)
             rows.append({
                 "dynamics": "firmware", "speed": float(speed), "mode": mode, "psi_cap": 0.0, "gains": None,
                 "flights": len(recs), "goal": len(ok), "collisions": int(sum(r["collisions"] > 0 for r in recs)),
@@ -181,6 +181,8 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
                 "time_to_goal_s": float(np.mean([r["time_s"] for r in ok])) if ok else float("nan"),
                 "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
                 "backups_per_flight": per("backups"), "eval_caps_per_flight": None,
+                # ticks a late decision was flown on to its certified successor / braked for want of one
+                "bridged_per_flight": per("bridged"), "expired_per_flight": per("expired"),
                 "outcomes": {o: sum(r["outcome"] == o for r in recs) for o in ("goal", "stuck", "timeout")},
                 "landed": sum(r["landed"] for r in recs),
                 "sitl_reruns": sum(r["sitl_reruns"] for r in recs),
