@@ -329,11 +329,11 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
      * late (its mailbox tick, hence its `from`, is past this decision's `to`).  The successor's plan modelled
      * exactly this decision's command (its u_app) over its latency, n_lat = 3 periods from its estimate (20 ms
      * of estimator delay, then the 10 ms to its `from`), so flying this decision on until the successor is due
-     * is what a certified plan modelled.  A
-     * successor that is itself a backup certifies nothing: brake as before.  Braking here instead was a
-     * 1-10 ms brake pulse whenever the app woke a tick late, which the PID position loop turned into 10 ms
-     * of the brake's tilt (jerk spikes of ~200 m/s^3 at 3 m/s in the real-firmware SITL on a busy host). */
-    bridge = d.valid && (int32_t)(tick - d.to) >= 0 && next.valid && !next.brake;
+     * is what a certified plan modelled.  A successor that is a backup or a landing (the uncertified
+     * exception) certifies nothing: brake as before.  Braking here instead was a 1-10 ms brake pulse whenever
+     * the app woke a tick late, which the PID position loop turned into 10 ms of the brake's tilt (jerk
+     * spikes of ~200 m/s^3 at 3 m/s in the real-firmware SITL on a busy host). */
+    bridge = d.valid && (int32_t)(tick - d.to) >= 0 && next.valid && !next.brake && !next.land;
     isOn = on;
     taskEXIT_CRITICAL();
     if (!isOn) {

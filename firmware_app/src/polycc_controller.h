@@ -19,8 +19,8 @@
  * setpoint passes unchanged when the candidate is the desired velocity), otherwise the backup,
  * the brake policy (polycc_shield_brake, recomputed every tick from the live velocity estimate);
  * a decision not replaced in time is flown on until its successor is due if that successor is planned and
- * certified (its plan modelled this command over its latency; counted in bridged), else it expires into
- * the backup (counted in expired).
+ * certified, not a backup or a landing (its plan modelled this command over its latency; counted in
+ * bridged), else it expires into the backup (counted in expired).
  * Setpoints the shield changes become world-frame velocity setpoints (yaw fields kept).  Manual
  * attitude/rate/thrust setpoints (x, y or z mode disabled) pass unfiltered: status manual,
  * counted, one warning per switch-on.

@@ -492,9 +492,10 @@ def test_a_late_decision_is_bridged_by_its_certified_successor_not_braked(header
 @pytest.mark.parametrize("dynamics", ["crazyflie", "quadrotor"])
 def test_a_late_app_task_still_stops_clear_of_a_wall(header, dynamics):
     """The bridge flies a decision on only up to a certified successor: with the app task 5 ms late every other
-    period, a 2 m/s stream straight at the wall still stops with clearance >= r (and the backups still brake)."""
+    period, a 2 m/s stream straight at the wall still stops with clearance >= r; a late successor that is a
+    backup is not bridged to: the decision expires into the brake (`expired`)."""
     m = _model(header, dynamics)
     worst, _ = _late_stream(m, (2.0, 0.0, 0.0), 4.0, 5)
     tr = _trace(m)
     assert worst >= 0.0, f"{-worst:.3f} m into the wall"
-    assert tr.bridged > 0 and tr.backups > 0 and abs(float(m.dyn.v[0])) < 0.1
+    assert tr.bridged > 0 and tr.backups > 0 and tr.expired > 0 and abs(float(m.dyn.v[0])) < 0.1
