@@ -34,7 +34,8 @@ shipped cf2 (PID controller), ``shield`` a cf2 with the braking term compiled ou
 controller (stabilizer.controller = 5 in the fork) and polyccShield.enable = 1 from the start height
 (``app_shield``: the shipped cf2 with the same controller and shield, app radius 0.2 m). Model
 "firmware" rows: collisions and clearance on the bridge's 100 Hz truth, jerk from its velocity, the
-shield's logged counters. The rate gap needs the app's per-tick commands, which the firmware does not
+shield's logged counters; a second table pairs each mode's flights with the app's on the same pairs
+(:func:`paired_jerk`). The rate gap needs the app's per-tick commands, which the firmware does not
 log: "-". Next to them, model "quadrotor" rows on the same pairs (fast sim) for the agreement.
 
     python bench/bench_shield.py --firmware ../shared/firmware/crazyflie-firmware-sitl-6a4d2d0.tar.xz \
@@ -178,6 +179,9 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
                 "min_clearance_m": float(min(r["min_clearance_m"] for r in recs)),
                 "gap_p1": None, "gap_p50": None, "gap_p99": None,
                 "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
+                # per flight, pair by pair (paired_jerk compares the modes on the same pairs)
+                "flight_jerk_rms": [float(np.sqrt(np.mean(j.astype(np.float64) ** 2))) if len(j) else float("nan")
+                                    for j in jerks],
                 "time_to_goal_s": float(np.mean([r["time_s"] for r in ok])) if ok else float("nan"),
                 "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
                 "backups_per_flight": per("backups"), "eval_caps_per_flight": None,
@@ -193,6 +197,33 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
             if done:
                 done(rows)
     return rows
+
+
+def paired_jerk(rows: list[dict], base: str = "app") -> list[dict]:
+    """Per speed and mode, the jerk RMS of each flight against ``base``'s flight of the same pair (firmware
+    rows): median and geometric mean of the ratios, the pairs where the mode's flight is smoother, and the
+    Wilcoxon signed-rank p-value (two-sided, on the log ratios). The pooled RMS of a cell is dominated by a
+    few flights (a 25-pair cell's pooled figure moved by several m/s^3 between runs); the pairing removes the
+    pair-to-pair spread of the paths, which both modes share."""
+    from scipy.stats import wilcoxon
+
+    out = []
+    fw = [r for r in rows if r["dynamics"] == "firmware" and r.get("flight_jerk_rms")]
+    for r in fw:
+        b = next((x for x in fw if x["speed"] == r["speed"] and x["mode"] == base), None)
+        if r["mode"] == base or b is None:
+            continue
+        a, o = np.asarray(b["flight_jerk_rms"]), np.asarray(r["flight_jerk_rms"])
+        k = min(len(a), len(o))
+        a, o = a[:k], o[:k]
+        ok = np.isfinite(a) & np.isfinite(o) & (a > 0) & (o > 0)
+        lr = np.log(o[ok] / a[ok])
+        p = float(wilcoxon(lr).pvalue) if len(lr) >= 6 and np.any(lr != 0) else float("nan")
+        out.append({"speed": r["speed"], "mode": r["mode"], "base": base, "pairs": int(ok.sum()),
+                    "median_ratio": float(np.exp(np.median(lr))) if len(lr) else float("nan"),
+                    "geomean_ratio": float(np.exp(np.mean(lr))) if len(lr) else float("nan"),
+                    "smoother": int((lr < 0).sum()), "wilcoxon_p": p})
+    return out
 
 
 def _table_rows(rows):
@@ -290,6 +321,14 @@ def firmware_main(args, header: Path, pairs, budget) -> int:
     out = save(fw_rows, partial=False)
     print_table(f"Shield vs today's app on the REAL firmware (SITL) and the fast quadrotor, demo arena n={N_POLYS}, "
                 f"{len(sub)} pairs per speed", HEAD, _table_rows(out))
+    paired = paired_jerk(fw_rows)
+    if paired:
+        print_table("Jerk RMS per flight against today's app on the same pair (real firmware)",
+                    ["v m/s", "mode", "pairs", "median ratio", "geo. mean ratio", "smoother", "Wilcoxon p"],
+                    [[r["speed"], r["mode"], r["pairs"], r["median_ratio"], r["geomean_ratio"],
+                      f"{r['smoother']}/{r['pairs']}", r["wilcoxon_p"]] for r in paired])
+    write_json("shield_firmware", {"pairs": len(sub), "budget": budget, "rows": out, "paired": paired,
+                                   "partial": False, "wall_s": time.perf_counter() - t0})
     return 0
 
 
