@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from polycc.errors import PolyccError
+from polycc.geometry.lp_raw import linprog_highs
 from polycc.geometry.qhull_raw import halfspaces_raw
 
 MIN_PLANES = 4  # a bounded polytope in R^3 needs at least 4 half-planes
@@ -48,16 +49,19 @@ def is_bounded(normals: np.ndarray, min_gamma: float = 1e-9) -> bool:
 def chebyshev_centre(h: np.ndarray) -> tuple[np.ndarray, float]:
     """Centre and radius of the largest ball inside ``{n . p <= d}`` (float64 LP); PolyccError if
     the polytope is empty, flat or unbounded."""
-    from scipy.optimize import linprog
-
     h = np.asarray(h, np.float64)
     n, d = h[:, :3], h[:, 3]
     norms = np.linalg.norm(n, axis=1)
-    res = linprog(c=[0, 0, 0, -1], A_ub=np.c_[n, norms], b_ub=d, bounds=[(None, None)] * 3 + [(0, None)],
-                  method="highs")
-    if res.status != 0 or res.x[3] <= 0:
+    # linprog(c=[0, 0, 0, -1], A_ub=[n, |n|], b_ub=d, bounds x, y, z free, r >= 0, method="highs"), bit for bit
+    status, x = linprog_highs(_CHEB_COST, np.c_[n, norms], d, _CHEB_LB, _CHEB_UB)
+    if status != 0 or x[3] <= 0:
         raise PolyccError("a polytope is empty, flat or unbounded; every polytope needs a non-empty interior")
-    return res.x[:3], float(res.x[3])
+    return x[:3], float(x[3])
+
+
+_CHEB_COST = np.array([0.0, 0.0, 0.0, -1.0])
+_CHEB_LB = np.array([-np.inf, -np.inf, -np.inf, 0.0])
+_CHEB_UB = np.full(4, np.inf)
 
 
 def _intersection(h: np.ndarray, interior, min_gamma: float, max_reach: float):

@@ -1,0 +1,51 @@
+"""polycc.geometry.lp_raw against scipy's linprog(method="highs"): the same status class and the same
+solution, bit for bit (the Chebyshev centres of pack_scene feed the stored scene)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import linprog
+
+from polycc.geometry.halfplanes import chebyshev_centre
+from polycc.geometry.lp_raw import linprog_highs
+
+COST = np.array([0.0, 0.0, 0.0, -1.0])
+LB = np.array([-np.inf, -np.inf, -np.inf, 0.0])
+UB = np.full(4, np.inf)
+
+
+def _same(A, b):
+    ref = linprog(c=COST, A_ub=A, b_ub=b, bounds=list(zip(LB, UB)), method="highs")
+    status, x = linprog_highs(COST, A, b, LB, UB)
+    assert (status == 0) == (ref.status == 0), (status, ref.status)
+    if status == 0:
+        assert np.array_equal(np.asarray(ref.x).view(np.uint64), x.view(np.uint64)), (ref.x, x)
+    return status
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(4, 40), st.integers(0, 2**32 - 1), st.sampled_from(["gauss", "lattice"]),
+       st.floats(-0.5, 1.0))
+def test_chebyshev_lp_is_linprogs_bit_for_bit(m, seed, kind, shift):
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(m, 3))
+    if kind == "lattice":  # exact zeros in the matrix (axis-aligned and diagonal normals)
+        n = np.rint(n)
+        n[np.all(n == 0, axis=1)] = (0.0, 0.0, 1.0)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    d = rng.normal(size=m) * 0.2 + shift  # some empty, some unbounded, most bounded
+    _same(np.c_[n, np.linalg.norm(n, axis=1)], d)
+
+
+def test_all_three_outcomes_and_the_centre_of_a_box():
+    box = np.array([[1, 0, 0, 1], [-1, 0, 0, 1], [0, 1, 0, 2], [0, -1, 0, 2], [0, 0, 1, 3], [0, 0, -1, 3.0]])
+    assert _same(np.c_[box[:, :3], np.ones(6)], box[:, 3]) == 0
+    c, r = chebyshev_centre(box)
+    assert r == 1.0 and np.allclose(c[0], 0.0)
+    empty = box.copy()
+    empty[1, 3] = -2.0  # x <= 1 and x >= 2
+    assert _same(np.c_[empty[:, :3], np.ones(6)], empty[:, 3]) != 0
+    open_ = box[[0, 2, 3, 4, 5]]  # x unbounded below: the radius is still bounded (by y), the LP optimal
+    assert _same(np.c_[open_[:, :3], np.ones(5)], open_[:, 3]) == 0
