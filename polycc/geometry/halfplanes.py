@@ -53,7 +53,7 @@ def chebyshev_centre(h: np.ndarray) -> tuple[np.ndarray, float]:
     n, d = h[:, :3], h[:, 3]
     norms = np.linalg.norm(n, axis=1)
     # linprog(c=[0, 0, 0, -1], A_ub=[n, |n|], b_ub=d, bounds x, y, z free, r >= 0, method="highs"), bit for bit
-    status, x = linprog_highs(_CHEB_COST, np.c_[n, norms], d, _CHEB_LB, _CHEB_UB)
+    status, x, _ = linprog_highs(_CHEB_COST, np.c_[n, norms], d, _CHEB_LB, _CHEB_UB)
     if status != 0 or x[3] <= 0:
         raise PolyccError("a polytope is empty, flat or unbounded; every polytope needs a non-empty interior")
     return x[:3], float(x[3])

@@ -38,9 +38,10 @@ _OPTIONS = None
 
 
 def linprog_highs(c: np.ndarray, A_ub: np.ndarray, b_ub: np.ndarray, lb: np.ndarray, ub: np.ndarray
-                  ) -> tuple[int, np.ndarray | None]:
-    """(scipy status, x) of ``linprog(c, A_ub, b_ub, bounds=zip(lb, ub), method="highs")`` for a dense
-    ``A_ub`` (float64); status 0 = optimal and checked, as ``linprog``'s ``res.status``."""
+                  ) -> tuple[int, np.ndarray | None, np.ndarray | None]:
+    """(scipy status, x, the inequalities' marginals) of ``res = linprog(c, A_ub, b_ub, bounds=zip(lb, ub),
+    method="highs")`` for a dense ``A_ub`` (float64): ``res.status`` (0 = optimal and checked), ``res.x``,
+    ``res.ineqlin.marginals``."""
     global _OPTIONS
     c = np.asarray(c, np.float64)
     A = np.asarray(A_ub, np.float64)
@@ -57,7 +58,7 @@ def linprog_highs(c: np.ndarray, A_ub: np.ndarray, b_ub: np.ndarray, lb: np.ndar
     from scipy.optimize import linprog
 
     res = linprog(c=c, A_ub=A, b_ub=b, bounds=list(zip(lb, ub)), method="highs")
-    return int(res.status), res.x
+    return int(res.status), res.x, res.ineqlin.marginals
 
 
 def _run(c, A, b, lb, ub):
@@ -79,13 +80,13 @@ def _run(c, A, b, lb, ub):
     lp.a_matrix_.value_ = A.T[nz]
     highs = _h._Highs()
     if highs.passOptions(_OPTIONS) == _h.HighsStatus.kError or highs.passModel(lp) == _h.HighsStatus.kError:
-        return 4, None
+        return 4, None, None
     if highs.run() == _h.HighsStatus.kError or highs.getModelStatus() != _h.HighsModelStatus.kOptimal:
-        return 2, None  # any failure: the callers only test status != 0
+        return 2, None, None  # any failure: the callers only test status != 0
     info = highs.getInfo()
     sol = highs.getSolution()
     x = np.array(sol.col_value)
     slack = b - np.asarray(sol.row_value)[:m]
     status, _ = _check_result(x, info.objective_function_value, 0, slack, np.empty(0), np.c_[lb, ub], 1e-9, "",
                               None)
-    return int(status), x
+    return int(status), x, np.array(sol.row_dual)[:m]

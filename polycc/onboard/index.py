@@ -57,12 +57,13 @@ def _face_bound(n: np.ndarray, d: np.ndarray, e: np.ndarray, delta: float) -> fl
     (rounded up) is certified whatever the LP solver's accuracy."""
     from fractions import Fraction
 
-    from scipy.optimize import linprog
+    from polycc.geometry.lp_raw import linprog_highs
 
-    res = linprog(-e, A_ub=n, b_ub=d + delta, bounds=[(None, None)] * 3, method="highs")
-    if res.status != 0:
+    # linprog(-e, A_ub=n, b_ub=d + delta, bounds free, method="highs"): its status and marginals, bit for bit
+    status, _, marginals = linprog_highs(-np.asarray(e, np.float64), n, d + delta, _FREE3_LB, _FREE3_UB)
+    if status != 0:
         raise PolyccError("index: the grid box LP failed (an unbounded polytope?)")
-    lam = np.maximum(-np.asarray(res.ineqlin.marginals, np.float64), 0.0)
+    lam = np.maximum(-np.asarray(marginals, np.float64), 0.0)
     F = Fraction
     lamf = [F(float(x)) for x in lam]
     Lam = sum(lamf)
@@ -76,6 +77,8 @@ def _face_bound(n: np.ndarray, d: np.ndarray, e: np.ndarray, delta: float) -> fl
 
 
 _POS_MAX = 1.0e5  # POLYCC_POS_MAX: larger coordinates are invalid input
+_FREE3_LB = np.full(3, -np.inf)
+_FREE3_UB = np.full(3, np.inf)
 
 
 GRID_BOX_MARGIN = 1e-3  # m: a polytope whose ball bound stays this far inside the box so far gets no LP

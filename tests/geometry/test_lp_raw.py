@@ -16,12 +16,17 @@ LB = np.array([-np.inf, -np.inf, -np.inf, 0.0])
 UB = np.full(4, np.inf)
 
 
-def _same(A, b):
-    ref = linprog(c=COST, A_ub=A, b_ub=b, bounds=list(zip(LB, UB)), method="highs")
-    status, x = linprog_highs(COST, A, b, LB, UB)
+def _bits(a):
+    return np.asarray(a, np.float64).view(np.uint64)
+
+
+def _same(A, b, c=COST, lb=LB, ub=UB):
+    ref = linprog(c=c, A_ub=A, b_ub=b, bounds=list(zip(lb, ub)), method="highs")
+    status, x, y = linprog_highs(c, A, b, lb, ub)
     assert (status == 0) == (ref.status == 0), (status, ref.status)
     if status == 0:
-        assert np.array_equal(np.asarray(ref.x).view(np.uint64), x.view(np.uint64)), (ref.x, x)
+        assert np.array_equal(_bits(ref.x), _bits(x)), (ref.x, x)
+        assert np.array_equal(_bits(ref.ineqlin.marginals), _bits(y)), (ref.ineqlin.marginals, y)
     return status
 
 
@@ -37,6 +42,20 @@ def test_chebyshev_lp_is_linprogs_bit_for_bit(m, seed, kind, shift):
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     d = rng.normal(size=m) * 0.2 + shift  # some empty, some unbounded, most bounded
     _same(np.c_[n, np.linalg.norm(n, axis=1)], d)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(4, 30), st.integers(0, 2**32 - 1), st.integers(0, 5), st.floats(0.0, 0.1))
+def test_the_index_box_lp_is_linprogs_bit_for_bit(m, seed, axis, delta):
+    """The grid box LP of polycc.onboard.index: max e . p over a polytope grown by delta, free bounds, whose
+    marginals make the certificate."""
+    rng = np.random.default_rng(seed)
+    n = rng.normal(size=(m, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    d = rng.uniform(0.05, 1.0, size=m)
+    e = np.zeros(3)
+    e[axis % 3] = 1.0 if axis < 3 else -1.0
+    _same(n, d + delta, -e, np.full(3, -np.inf), np.full(3, np.inf))
 
 
 def test_all_three_outcomes_and_the_centre_of_a_box():
