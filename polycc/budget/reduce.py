@@ -23,8 +23,14 @@ MIN_GAMMA = 1e-4
 
 def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -> float:
     """Volume added by dropping plane j (inf if the rest is unbounded)."""
-    r = polytope_vertices_volume(np.delete(planes, j, axis=0), interior, MIN_GAMMA)
+    r = polytope_vertices_volume(_without(planes, j), interior, MIN_GAMMA)
     return np.inf if r is None else max(r[1] - volume, 0.0)
+
+
+def _without(a: np.ndarray, j: int) -> np.ndarray:
+    """``np.delete(a, j, axis=0)`` for one row, without its argument handling (10 us a call, 1.6 s of a
+    6M-splat build's budget)."""
+    return np.concatenate((a[:j], a[j + 1:]))
 
 
 class _Stream:
@@ -86,8 +92,8 @@ class _Stream:
             if np.isfinite(c):
                 heapq.heappush(heap, (c, orig, self.version))
             return key, None
-        self.planes = np.delete(self.planes, j, axis=0)
-        self.ids = np.delete(self.ids, j)
+        self.planes = _without(self.planes, j)
+        self.ids = _without(self.ids, j)
         self.volume += c
         self.version += 1
         self.dropped.append(orig)
