@@ -18,7 +18,8 @@ One trial (:meth:`FirmwareSimulator.fly`), all in simulated time:
 The trial's path is the bridge's truth at 100 Hz of simulated time from step 3 to step 4; clearance to
 the ground-truth ellipsoids and collisions are computed exactly as for the fast simulator
 (:mod:`polycc.sim.clearance`), ``max_eval_us`` with the cycle model at the logged estimates (the SITL's
-``usecTimestamp`` has 1 ms resolution, so the firmware's own ``polycc.evalUs`` says nothing).
+``usecTimestamp`` has 1 ms resolution, so the firmware's own ``polycc.evalUs`` says nothing), and the
+barrier-rate gap from the app's logged command at 50 Hz (:meth:`FirmwareSimulator.rate_gap`).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import numpy as np
 from polycc.budget import cycle_model
 from polycc.errors import PolyccError
 from polycc.link.cflib_tools import close_without_stop, connect, set_param
+from polycc.onboard.app import STATUS_NAMES
 from polycc.sim.clearance import Clearance, densify
 from polycc.sim.firmware.build import Cf2Build, build_cf2
 from polycc.sim.firmware.sitl import FirmwareSitl, SitlStall
@@ -40,8 +42,10 @@ from polycc.sim.sitl import FlightConfig, Trial
 TAKEOFF_SPEED = 0.5  # m/s
 LAND_SPEED = 0.3     # m/s
 SAMPLE_S = 0.02      # polling period of the truth, wall seconds
+# one 25-byte log block (of 26) at 50 Hz: the estimate, the app's status and its last velocity command
 LOG_VARS = (("stateEstimate.x", "float"), ("stateEstimate.y", "float"), ("stateEstimate.z", "float"),
-            ("polycc.status", "uint8_t"), ("polycc.psi", "float"))
+            ("polycc.status", "uint8_t"), ("polycc.ux", "float"), ("polycc.uy", "float"), ("polycc.uz", "float"))
+STATUS_OK = next(k for k, v in STATUS_NAMES.items() if v == "ok")  # the app sent its velocity command
 # cfg.shield: the shield's counters the firmware logs (group polyccShield, polycc_controller.c), and the
 # out-of-tree controller's number in the SITL fork's ControllerType enum (src/modules/interface/controller/
 # controller.h: AutoSelect, PID, Mellinger, INDI, Brescianini, Oot; upstream has Lee before Oot: 6)
@@ -79,6 +83,7 @@ class FirmwareSimulator:
         self.n = 0
         # cflib's TOC cache is left off: both stalled connects seen had it on (not root-caused); ~1 s per connect
         self.toc_cache = None
+        self._host_scene = None  # the kernel's scene for rate_gap, built on first use
 
     def fly(self, start, goal, cfg: FlightConfig | None = None, waypoints=None) -> Trial:
         """One trial on a fresh SITL instance, flown again on a fresh instance when the simulator, not the
@@ -152,6 +157,30 @@ class FirmwareSimulator:
             trial.min_clearance_m, trial.collisions, _ = self.clearance.evaluate(densify(trial.positions), r_phys)
         return trial
 
+    def rate_gap(self, flight, traj: np.ndarray, params) -> np.ndarray:
+        """Realized minus commanded barrier rate, grad psi . (v_true - u) in m/s (Prop. 1 of seed 001), at every
+        log sample where the app sent its velocity command u (status OK), as the fast simulator's
+        ``Trial.rate_gap``: grad psi from the same kernel on the host (``polycc_step``, float32) at the logged
+        estimate, v_true the bridge's truth velocity interpolated at the sample's firmware time (ticks / 1000 =
+        simulated seconds, lock-step). The fast simulator takes the app's own grad psi at its last evaluation,
+        up to 10 ms older."""
+        rows = [r for r in flight if int(r[4]) == STATUS_OK and None not in r[1:4] and None not in r[5:8]]
+        if not rows or len(traj) < 2:
+            return np.zeros(0)
+        from polycc.sim import kernel_ffi
+
+        R = np.asarray([r[:4] + r[5:8] for r in rows], np.float64)
+        t = R[:, 0] / 1000.0
+        keep = (t >= traj[0, 0]) & (t <= traj[-1, 0])
+        if not keep.any():
+            return np.zeros(0)
+        R, t = R[keep], t[keep]
+        if self._host_scene is None:
+            self._host_scene = kernel_ffi.HostScene(self.packed)
+        grad = kernel_ffi.step_batch(self._host_scene, params, R[:, 1:4], R[:, 1:4])["grad"].astype(np.float64)
+        v = np.stack([np.interp(t, traj[:, 0], traj[:, 4 + i]) for i in range(3)], axis=1)
+        return np.einsum("ij,ij->i", grad, v - R[:, 4:7])
+
     # ------------------------------------------------------------------ one flight
     def _start_shield(self, cf, cfg: FlightConfig):
         """cfg.shield: the out-of-tree controller and the shield's params as the fast simulator sets them, and
@@ -201,7 +230,8 @@ class FirmwareSimulator:
             with lock:
                 latest.update(data)
                 samples.append((ts, latest.get("stateEstimate.x"), latest.get("stateEstimate.y"),
-                                latest.get("stateEstimate.z"), latest.get("polycc.status", -1)))
+                                latest.get("stateEstimate.z"), latest.get("polycc.status", -1),
+                                latest.get("polycc.ux"), latest.get("polycc.uy"), latest.get("polycc.uz")))
 
         lc = LogConfig(name="polyccsim", period_in_ms=20)
         for name, ctype in LOG_VARS:
@@ -285,7 +315,7 @@ class FirmwareSimulator:
             P = np.asarray([start])
         statuses: dict[int, int] = {}
         est = []
-        for _, x, y, zz, st in flight:
+        for _, x, y, zz, st, *_u in flight:
             statuses[int(st)] = statuses.get(int(st), 0) + 1
             if None not in (x, y, zz):
                 est.append((x, y, zz))
@@ -306,6 +336,7 @@ class FirmwareSimulator:
             trial.jerk = np.linalg.norm(np.diff(A, axis=0), axis=1) / np.diff(Tt)[1:]
         else:
             trial.jerk = np.zeros(0)
+        trial.rate_gap = self.rate_gap(flight, traj, params)
         extra = {"landed": bool(landed), "touchdown_ms": trial.impact_speed_ms,
                  "start_actual": P[0].tolist(), "takeoff_s": duration}
         return trial, extra
