@@ -35,14 +35,16 @@ controller (stabilizer.controller = 5 in the fork) and polyccShield.enable = 1 f
 (``app_shield``: the shipped cf2 with the same controller and shield, app radius 0.2 m). Model
 "firmware" rows: collisions and clearance on the bridge's 100 Hz truth, jerk from its velocity, the
 shield's logged counters; a second table pairs each mode's flights with the app's on the same pairs
-(:func:`paired_jerk`). The rate gap needs the app's per-tick commands, which the firmware does not
-log: "-". Next to them, model "quadrotor" rows on the same pairs (fast sim) for the agreement.
+(:func:`paired_jerk`); the rate gap from the app's logged command and estimate at 50 Hz, grad psi from the
+host kernel (:meth:`polycc.sim.firmware.flights.FirmwareSimulator.rate_gap`). Next to them, model
+"quadrotor" rows on the same pairs (fast sim) for the agreement.
 
     python bench/bench_shield.py --firmware ../shared/firmware/crazyflie-firmware-sitl-6a4d2d0.tar.xz \
-        --fw-pairs 5 [--speeds ...] [--modes app,shield,app_shield]
+        --fw-pairs 100 [--fw-minutes 90] [--speeds ...] [--modes app,shield,app_shield]
 
-Each real-firmware flight is kept in build/bench-cache/shield_firmware_flights (per cf2 build key, mode, speed
-and pair) and read instead of flown again, so the pairs per speed accumulate over runs.
+Each real-firmware flight is kept in the committed store bench/flights/ (bench/flight_store.py: per cf2
+build, flight code and config, mode, speed and pair) and read instead of flown again, so the pairs per
+speed accumulate over runs and machines; ``--fw-minutes`` stops flying after that much wall time.
 
 Writes bench/results/shield.json (fast) and bench/results/shield_firmware.json (--firmware).
 """
@@ -59,7 +61,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import CACHE, print_table, write_json  # noqa: E402
+from common import print_table, write_json  # noqa: E402
 
 RADIUS = 0.1
 N_POLYS = 150
@@ -100,35 +102,39 @@ def fly_cell(job: dict) -> dict:
     }
 
 
-FW_STORE = CACHE / "shield_firmware_flights"  # one JSON (+ jerk .npy) per real-firmware flight
+def _flight_record(t, start, goal) -> dict:
+    """What the rows need of one firmware Trial, for the flight store (bench/flight_store.py)."""
+    from flight_store import encode
 
-
-def _flight_record(t) -> dict:
-    """What the rows need of one firmware Trial (JSON-able; the jerk samples go beside it)."""
-    return {"outcome": t.outcome, "success": bool(t.success), "time_s": float(t.time_s),
+    jerk = np.asarray(t.jerk if t.jerk is not None else np.zeros(0), np.float64)
+    gap = np.asarray(t.rate_gap if t.rate_gap is not None else np.zeros(0), np.float64)
+    return {"start": [float(v) for v in start], "goal": [float(v) for v in goal],
+            "outcome": t.outcome, "success": bool(t.success), "time_s": float(t.time_s),
             "collisions": int(t.collisions), "min_clearance_m": float(t.min_clearance_m), "shield": t.shield,
             "landed": bool(t.extra.get("landed")), "sitl_reruns": int(t.extra.get("sitl_reruns", 0)),
-            "rtf": float(t.extra.get("rtf") or 0.0)}
+            "rtf": float(t.extra.get("rtf") or 0.0), "wall_s": float(t.extra.get("wall_s") or 0.0),
+            "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))) if len(jerk) else float("nan"),
+            "jerk": encode(jerk), "gap": encode(gap)}
 
 
-def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app", "shield"), done=None,
-                       store: Path | None = FW_STORE) -> list[dict]:
-    """The real-firmware rows (module docstring) for ``modes`` (those of ``--modes``), flown one after the other
-    (each SITL is lock-stepped at up to real time: parallel instances only slow each other). ``done(rows)`` is
-    called after each cell, with the rows so far.
+def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app", "shield"),
+                       minutes: float | None = None, store: Path | None = None) -> list[dict]:
+    """The real-firmware rows (module docstring) for ``modes`` (those of ``--modes``).
 
-    Each flight is kept in ``store`` under its cf2 build's cache key (app sources, header, flags), mode, speed
-    and pair number, and a flight already there is read instead of flown: a real-firmware flight takes 20-40 s
-    of wall time, so the 100 pairs per speed accumulate over runs (``--fw-pairs`` only adds pairs). A change to
-    the app or the header makes a new key, so old flights are never mixed in."""
-    import json
-
+    Flights come from the committed flight store (bench/flight_store.py, bench/flights/) where they are
+    there for this build, flight code, config and pair; the missing ones are flown one after the other
+    (each SITL is lock-stepped at up to real time, and a second instance on a 2-core host starves the app
+    task: 10x the late decisions, measured), pair by pair across all cells, so a run cut short by
+    ``minutes`` (wall) leaves every cell with about the same pairs. Each flight is written to the store as
+    it lands. A cell's row covers the pairs it holds of ``pairs``."""
     from bench_sim import arena
+    from flight_store import STORE, Cell, store_key
 
     from polycc.sim.firmware.build import build_cf2
     from polycc.sim.firmware.flights import FirmwareSimulator
     from polycc.sim.sitl import FlightConfig, Simulator
 
+    store = STORE if store is None else Path(store)
     ell = arena("demo")
     ref = Simulator(header)
     braked = {m: m not in ("shield", "nobrake") for m in modes}
@@ -137,66 +143,79 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
         builds[True] = build_cf2(tree, header, log=say)
     if not all(braked.values()):
         builds[False] = build_cf2(tree, header, extra_cflags=["-DPOLYCC_APP_BRAKE_ACC=0.0f"], log=say)
-    if store is not None:
-        store.mkdir(parents=True, exist_ok=True)
+    cfgs, cells = {}, {}
+    for speed in speeds:
+        for mode in modes:
+            shield = mode in ("shield", "app_shield")
+            cfg = FlightConfig(vmax=speed, radius=RADIUS if mode == "app" else 0.2, clearance_radius=RADIUS,
+                               shield=shield, shield_radius=RADIUS)
+            cfgs[speed, mode] = cfg
+            cells[speed, mode] = Cell(store_key(builds[braked[mode]].key, cfg), mode, speed, store)
+    todo = [(k, speed, mode) for k in range(len(pairs)) for speed in speeds for mode in modes
+            if cells[speed, mode].get(k, *pairs[k]) is None]
+    say(f"real firmware: {len(pairs) * len(cells) - len(todo)} flights in the store ({store}), {len(todo)} to fly"
+        + (f", for at most {minutes:g} min" if minutes is not None else ""))
+    t_run = time.perf_counter()
+    sims, flown = {}, {}
+    for i, (k, speed, mode) in enumerate(todo):
+        if minutes is not None and time.perf_counter() - t_run > 60.0 * minutes:
+            say(f"--fw-minutes {minutes:g} used up: {len(todo) - i} flights left for a later run")
+            break
+        s0, g = pairs[k]
+        b = braked[mode]
+        if b not in sims:
+            sims[b] = FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=builds[b])
+        t = sims[b].fly(s0, g, cfgs[speed, mode])
+        cells[speed, mode].put(k, _flight_record(t, s0, g))
+        flown[speed, mode] = flown.get((speed, mode), 0) + 1
+        say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)} ({i + 1}/{len(todo)}): {t.outcome}, "
+            f"clearance {t.min_clearance_m:+.3f} m, {t.time_s:.1f} s")
     rows = []
     for speed in speeds:
         for mode in modes:
-            t0 = time.perf_counter()
-            shield = mode in ("shield", "app_shield")
-            build = builds[braked[mode]]
-            fw = None
-            cfg = FlightConfig(vmax=speed, radius=RADIUS if mode == "app" else 0.2, clearance_radius=RADIUS,
-                               shield=shield, shield_radius=RADIUS)
-            recs, jerks, flown = [], [], 0
-            for k, (s0, g) in enumerate(pairs):
-                # (no Path.with_suffix: "0.5" has a dot)
-                stem = None if store is None else str(store / f"{build.key[:16]}_{mode}_{speed:g}ms_{k:03d}")
-                if stem is not None and Path(stem + ".json").is_file():
-                    rec = json.loads(Path(stem + ".json").read_text())
-                    jerk = np.load(stem + ".npy")
-                else:
-                    fw = fw or FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=build)
-                    t = fw.fly(s0, g, cfg)
-                    rec = _flight_record(t)
-                    jerk = np.asarray(t.jerk if t.jerk is not None else np.zeros(0), np.float32)
-                    flown += 1
-                    if stem is not None:
-                        np.save(stem + ".npy", jerk)
-                        Path(stem + ".json").write_text(json.dumps(dict(rec, start=list(map(float, s0)),
-                                                                       goal=list(map(float, g)))))
-                    say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)}: {t.outcome}, clearance "
-                        f"{t.min_clearance_m:+.3f} m, {t.time_s:.1f} s")
-                recs.append(rec)
-                jerks.append(jerk)
-            ok = [r for r in recs if r["success"]]
-            jerk = np.concatenate([j for j in jerks if len(j)] or [np.zeros(1)]).astype(np.float64)
-            sh = [r["shield"] for r in recs if r["shield"]]
-            per = (lambda k: float(np.mean([x.get(k, 0) for x in sh]))) if sh else (lambda k: 0.0)
-            rows.append({
-                "dynamics": "firmware", "speed": float(speed), "mode": mode, "psi_cap": 0.0, "gains": None,
-                "flights": len(recs), "goal": len(ok), "collisions": int(sum(r["collisions"] > 0 for r in recs)),
-                "min_clearance_m": float(min(r["min_clearance_m"] for r in recs)),
-                "gap_p1": None, "gap_p50": None, "gap_p99": None,
-                "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
-                # per flight, pair by pair (paired_jerk compares the modes on the same pairs)
-                "flight_jerk_rms": [float(np.sqrt(np.mean(j.astype(np.float64) ** 2))) if len(j) else float("nan")
-                                    for j in jerks],
-                "time_to_goal_s": float(np.mean([r["time_s"] for r in ok])) if ok else float("nan"),
-                "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
-                "backups_per_flight": per("backups"), "eval_caps_per_flight": None,
-                # ticks a late decision was flown on to its certified successor / braked for want of one
-                "bridged_per_flight": per("bridged"), "expired_per_flight": per("expired"),
-                "outcomes": {o: sum(r["outcome"] == o for r in recs) for o in ("goal", "stuck", "timeout")},
-                "landed": sum(r["landed"] for r in recs),
-                "sitl_reruns": sum(r["sitl_reruns"] for r in recs),
-                "rtf_mean": float(np.mean([r["rtf"] for r in recs])),
-                "flown_now": flown, "build_key": build.key[:16],
-                "wall_s": time.perf_counter() - t0,
-            })
-            if done:
-                done(rows)
+            cell = cells[speed, mode]
+            got = [(k, cell.get(k, *pairs[k])) for k in range(len(pairs))]
+            rows.append(_firmware_row(speed, mode, [(k, r) for k, r in got if r is not None], cell,
+                                      builds[braked[mode]].key, flown.get((speed, mode), 0)))
     return rows
+
+
+def _firmware_row(speed: float, mode: str, recs: list[tuple[int, dict]], cell, cf2_key: str, flown: int) -> dict:
+    """One firmware row from a cell's records (pair number, record)."""
+    from flight_store import decode
+
+    nan = float("nan")
+    jerks = [decode(r["jerk"]) for _, r in recs]
+    gaps = [decode(r["gap"]) for _, r in recs]
+    jerk = np.concatenate([j for j in jerks if len(j)] or [np.zeros(1)])
+    gap = np.concatenate([x for x in gaps if len(x)] or [np.full(1, nan)])
+    ok = [r for _, r in recs if r["success"]]
+    sh = [r["shield"] for _, r in recs if r["shield"]]
+    per = (lambda k: float(np.mean([x.get(k, 0) for x in sh]))) if sh else (lambda k: 0.0)
+
+    def pct(a, q):
+        return float(np.percentile(a, q)) if np.isfinite(a).all() else None
+
+    return {
+        "dynamics": "firmware", "speed": float(speed), "mode": mode, "psi_cap": 0.0, "gains": None,
+        "flights": len(recs), "goal": len(ok), "collisions": int(sum(r["collisions"] > 0 for _, r in recs)),
+        "min_clearance_m": float(min((r["min_clearance_m"] for _, r in recs), default=nan)),
+        "gap_p1": pct(gap, 1), "gap_p50": pct(gap, 50), "gap_p99": pct(gap, 99),
+        "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
+        # per flight, pair by pair (paired_jerk compares the modes on the same pairs)
+        "pair_ids": [k for k, _ in recs], "flight_jerk_rms": [r["jerk_rms"] for _, r in recs],
+        "time_to_goal_s": float(np.mean([r["time_s"] for r in ok])) if ok else nan,
+        "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
+        "backups_per_flight": per("backups"), "eval_caps_per_flight": None,
+        # ticks a late decision was flown on to its certified successor / braked for want of one
+        "bridged_per_flight": per("bridged"), "expired_per_flight": per("expired"),
+        "outcomes": {o: sum(r["outcome"] == o for _, r in recs) for o in ("goal", "stuck", "timeout")},
+        "landed": sum(r["landed"] for _, r in recs),
+        "sitl_reruns": sum(r["sitl_reruns"] for _, r in recs),
+        "rtf_mean": float(np.mean([r["rtf"] for _, r in recs])) if recs else nan,
+        "flown_now": flown, "build_key": cf2_key[:16], "store": cell.path.name,
+        "wall_s": float(sum(r.get("wall_s", 0.0) for _, r in recs)),
+    }
 
 
 def paired_jerk(rows: list[dict], base: str = "app") -> list[dict]:
@@ -213,9 +232,9 @@ def paired_jerk(rows: list[dict], base: str = "app") -> list[dict]:
         b = next((x for x in fw if x["speed"] == r["speed"] and x["mode"] == base), None)
         if r["mode"] == base or b is None:
             continue
-        a, o = np.asarray(b["flight_jerk_rms"]), np.asarray(r["flight_jerk_rms"])
-        k = min(len(a), len(o))
-        a, o = a[:k], o[:k]
+        bj, rj = dict(zip(b["pair_ids"], b["flight_jerk_rms"])), dict(zip(r["pair_ids"], r["flight_jerk_rms"]))
+        common = sorted(set(bj) & set(rj))
+        a, o = np.asarray([bj[k] for k in common], float), np.asarray([rj[k] for k in common], float)
         ok = np.isfinite(a) & np.isfinite(o) & (a > 0) & (o > 0)
         lr = np.log(o[ok] / a[ok])
         p = float(wilcoxon(lr).pvalue) if len(lr) >= 6 and np.any(lr != 0) else float("nan")
@@ -253,7 +272,9 @@ def main() -> int:
                                                           "(module docstring)")
     ap.add_argument("--firmware", metavar="FWDIR", help="also fly the real firmware (CrazySim SITL tree or tarball)")
     ap.add_argument("--fw-pairs", type=int, default=5, help="with --firmware: pairs per speed and mode (default 5); "
-                    "flights already in the store (build/bench-cache/shield_firmware_flights) are read, not flown")
+                    "flights already in the store (bench/flights/shield_firmware) are read, not flown")
+    ap.add_argument("--fw-minutes", type=float, default=None, help="with --firmware: stop flying new flights after "
+                    "this many minutes of wall time (the store keeps them; default: no limit)")
     args = ap.parse_args()
     from bench_sim import pairs_for, write_header
 
@@ -300,35 +321,29 @@ def main() -> int:
 
 def firmware_main(args, header: Path, pairs, budget) -> int:
     """--firmware: the real-firmware rows and, on the same pairs, the fast quadrotor rows, for ``--modes``
-    (default app,shield). The JSON is written after every cell (``partial`` until the last)."""
+    (default app,shield): the firmware flights alone (stored or flown), then the fast cells (``--jobs``
+    processes) on the pairs the firmware cells hold."""
     t0 = time.perf_counter()
     speeds = [float(v) for v in args.speeds.split(",")]
     modes = args.modes.split(",")
     sub = pairs[: args.fw_pairs]
-    rows = []
-    for speed in speeds:  # the fast sim on the same pairs, side by side
-        for mode in modes:
-            rows.append(fly_cell({"header": str(header), "pairs": sub, "speed": speed, "dynamics": "quadrotor",
-                                  "mode": mode, "psi_cap": 0.0, "gains": None}))
-
-    def save(fw_rows, partial=True):
-        out = sorted(rows + fw_rows, key=lambda r: (r["speed"], r["mode"], r["dynamics"]))
-        write_json("shield_firmware", {"pairs": len(sub), "budget": budget, "rows": out, "partial": partial,
-                                       "wall_s": time.perf_counter() - t0})
-        return out
-
-    fw_rows = fly_firmware_cells(args.firmware, header, sub, speeds, modes=modes, done=save)
-    out = save(fw_rows, partial=False)
+    fw_rows = fly_firmware_cells(args.firmware, header, sub, speeds, modes=modes, minutes=args.fw_minutes)
+    held = [sub[k] for k in sorted({k for r in fw_rows for k in r["pair_ids"]})]
+    jobs = [{"header": str(header), "pairs": held, "speed": speed, "dynamics": "quadrotor", "mode": mode,
+             "psi_cap": 0.0, "gains": None} for speed in speeds for mode in modes]
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # the fast sim on the same pairs
+        rows = list(ex.map(fly_cell, jobs)) if held else []
+    out = sorted(rows + fw_rows, key=lambda r: (r["speed"], r["mode"], r["dynamics"]))
     print_table(f"Shield vs today's app on the REAL firmware (SITL) and the fast quadrotor, demo arena n={N_POLYS}, "
-                f"{len(sub)} pairs per speed", HEAD, _table_rows(out))
+                f"{len(held)} of {len(sub)} pairs per speed", HEAD, _table_rows(out))
     paired = paired_jerk(fw_rows)
     if paired:
         print_table("Jerk RMS per flight against today's app on the same pair (real firmware)",
                     ["v m/s", "mode", "pairs", "median ratio", "geo. mean ratio", "smoother", "Wilcoxon p"],
                     [[r["speed"], r["mode"], r["pairs"], r["median_ratio"], r["geomean_ratio"],
                       f"{r['smoother']}/{r['pairs']}", r["wilcoxon_p"]] for r in paired])
-    write_json("shield_firmware", {"pairs": len(sub), "budget": budget, "rows": out, "paired": paired,
-                                   "partial": False, "wall_s": time.perf_counter() - t0})
+    write_json("shield_firmware", {"pairs": len(sub), "pairs_held": len(held), "budget": budget, "rows": out,
+                                   "paired": paired, "partial": False, "wall_s": time.perf_counter() - t0})
     return 0
 
 
