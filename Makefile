@@ -11,9 +11,7 @@ PYTEST_MARK := --durations=40
 else
 PYTEST_MARK := -m "not slow"
 endif
-# worksteal: an idle worker takes pending tests from the other, so a queue of long firmware flights does not
-# leave one core idle at the end (the suite's tests run from under a second to 4 minutes)
-PYTEST_ARGS ?= -n 2 --dist worksteal
+PYTEST_ARGS ?= -n 2
 
 .PHONY: venv demo test test-all lint bench clean
 
