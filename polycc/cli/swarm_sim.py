@@ -179,7 +179,8 @@ def run(args) -> int:
         table.add_row(str(i), ",".join(f"{v:.1f}" for v in res.starts[i]),
                       ",".join(f"{v:.1f}" for v in res.positions[i][-1]), f"{res.path_m[i]:.2f}",
                       f"{res.nearest_m[i]:.3f}" if math.isfinite(res.nearest_m[i]) else "-",
-                      f"{res.min_clearance_m[i]:.3f}", str(res.obstacle_collisions[i]),
+                      f"{res.min_clearance_m[i]:.3f}" if math.isfinite(res.min_clearance_m[i]) else "-",
+                      str(res.obstacle_collisions[i]),
                       str(int(np.sum(res.detected_by == i))), str(hold),
                       ", ".join(f"{STATUS_NAMES.get(k, k)} {v}" for k, v in sorted(st.items())))
     console.print(table)
@@ -198,7 +199,8 @@ def run(args) -> int:
         "detected_at_s": [None if math.isnan(v) else float(v) for v in res.detected_at],
         "drones_detail": [{"start": res.starts[i].tolist(), "end": res.positions[i][-1].tolist(),
                            "path_m": res.path_m[i], "nearest_m": float(res.nearest_m[i]),
-                           "min_clearance_m": res.min_clearance_m[i],
+                           "min_clearance_m": res.min_clearance_m[i] if math.isfinite(res.min_clearance_m[i])
+                           else None,
                            "obstacle_collisions": res.obstacle_collisions[i],
                            "statuses": {STATUS_NAMES.get(k, str(k)): v for k, v in res.statuses[i].items()}}
                           for i in range(res.n)],

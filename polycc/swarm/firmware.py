@@ -110,7 +110,7 @@ def run_swarm_firmware(fwdir, header, cmap: CoverageMap, starts: np.ndarray, tar
             seg = tr[(tr[:, 0] >= t_on) & (tr[:, 0] <= t_off), 1:4]
         else:
             seg = tr[:0, 1:4]
-        flown.append(seg if len(seg) else tr[-1:, 1:4])
+        flown.append(seg)  # empty when the app never flew: no clearance (on the floor it would read as a hit)
     obst, clear = obstacle_clearance(flown, clearance, cfg.radius)
     statuses = []
     for lg in fl.logs:
@@ -151,10 +151,16 @@ def _fly_once(build, starts, cmap, targets, cfg, takeoff, relay, air_drop, t0, s
             marks.append((time.monotonic(), ts))
             return min(ts)
 
+        def drone_time(sl) -> float:  # the estimate watchdog's clock; raises SitlStall on a hung simulation
+            t = sl.time()
+            sl.note_time(t)
+            return t
+
         fl = swarm_fly([sl.uri for sl in sitls], cmap, targets, controller=cfg.controller, takeoff=takeoff,
                        radius=cfg.radius, t_max=cfg.t_max_s, bcast_hz=min(10.0, 1000.0 / cfg.bcast_ms),
                        latency_ms=max(50.0, cfg.latency_ms), sense=cfg.sense_m, clock=clock, vmax=cfg.vmax,
-                       swarm_v=cfg.swarm_v, relay=relay)
+                       swarm_v=cfg.swarm_v, relay=relay,
+                       drone_times=[lambda sl=sl: drone_time(sl) for sl in sitls])
         clock()
         air_stats = dict(air.stats) if air else {}
         trajs = [sl.trajectory() for sl in sitls]

@@ -62,7 +62,7 @@ LOG_PERIOD_MS = 50
 CONNECT_TIMEOUT_S = 90.0  # per attempt: TOC and all param values (a real-firmware SITL needs 6-15 s, more when loaded)
 GOAL_RESEND_M = 0.03  # a new goal is written only when it moved this much, m
 P2P_LOGS = ("polycc.nNbr", "polycc.p2pRx", "polycc.p2pTx", "polycc.p2pDrop")
-ESTIMATE_LOST_S = 2.0  # wall s without a position sample from a drone: stop (simulated drones may run slow)
+ESTIMATE_LOST_S = 2.0  # s without a position sample from a drone: stop (wall s; simulated drones: their own s)
 PARAM_TIMEOUT_S = 10.0  # wall s for a param write to be confirmed: each drone's cflib queue writes one at a time, and
 #                          four SITL instances on a loaded host answer in seconds
 FIRST_ESTIMATE_S = 15.0  # wall s for every drone's first position sample (log blocks start one by one)
@@ -159,12 +159,16 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
               takeoff: float = 0.9, radius: float = 0.1, t_max: float = 60.0, bcast_hz: float = 10.0,
               ctrl_hz: float = 5.0, latency_ms: float = 50.0, sense: float = 0.5, land: bool = True,
               on_update=None, clock=None, vmax: float | None = None, swarm_v: float | None = None,
-              relay: str = "p2p") -> SwarmFlight:
+              relay: str = "p2p", drone_times=None) -> SwarmFlight:
     """Fly the swarm (module docstring). ``on_update(flight, t)`` is called about ``bcast_hz`` times a second.
     ``clock()`` (s; default: the wall clock) times the task: ``t_max``, the takeoff and landing timeouts and
     the detection times; simulated drones slower than real time pass their (slowest) simulated time.
     ``vmax``, ``swarm_v`` (m/s), when given, set every app's ``polycc.vmax`` and ``polycc.swarmV``.
-    ``relay``: ``"p2p"`` or ``"ground"`` (module docstring)."""
+    ``relay``: ``"p2p"`` or ``"ground"`` (module docstring). ``drone_times`` (simulated drones): per drone, a
+    callable giving its firmware time now (s); a drone's estimate is then lost when its last logged sample
+    is :data:`ESTIMATE_LOST_S` old in that time (the log timestamp is the firmware's), so a host too loaded
+    to run the simulation at real time does not stop the flight. Real drones: wall seconds since a sample
+    arrived."""
     logging.getLogger("cflib.crazyflie.toccache").setLevel(logging.ERROR)
     if len(set(uris)) != len(uris) or not 1 <= len(uris) <= 16:
         raise PolyccError(f"--uris: give 1..16 distinct URIs (got {len(uris)}, the app's table holds 16 neighbours)")
@@ -176,6 +180,7 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
     sessions: list[_Session] = []
     configs = []
     arrived = [0.0] * n  # monotonic time each drone's last position sample arrived
+    stamps = [-math.inf] * n  # firmware time (s) of each drone's last position sample
     flight = SwarmFlight(uris, logs, np.full(len(targets.mu), np.nan), np.full(len(targets.mu), -1), targets=targets)
     try:
         from cflib.crazyflie.log import LogConfig
@@ -196,6 +201,7 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
                 with lock:
                     logs[i].latest.update(data)
                     s.last_pos_t = arrived[i] = time.monotonic()
+                    stamps[i] = ts / 1000.0
                     logs[i].rows.append([ts / 1000.0] + [float(data[k]) for k in (*POSITION, "polycc.status")])
 
             cf.log.add_config(lc)
@@ -217,7 +223,7 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
                 set_param(cf, "commander.enHighLevel", 1, timeout_s=PARAM_TIMEOUT_S)
         try:
             _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bcast_hz, ctrl_hz, latency_ms,
-                 sense, arrived, lock, on_update, clock or time.monotonic, p2p)
+                 sense, arrived, lock, on_update, clock or time.monotonic, p2p, stamps, drone_times)
         except KeyboardInterrupt:
             flight.outcome = "interrupted"
             raise
@@ -258,7 +264,7 @@ def _positions(sessions) -> np.ndarray | None:
 
 
 def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bcast_hz, ctrl_hz, latency_ms, sense,
-         arrived, lock, on_update, clock, p2p) -> None:
+         arrived, lock, on_update, clock, p2p, stamps, drone_times) -> None:
     n = len(sessions)
     t_wait = time.monotonic() + FIRST_ESTIMATE_S
     while (P := _positions(sessions)) is None:
@@ -286,8 +292,14 @@ def _fly(flight, sessions, cmap, targets, controller, takeoff, radius, t_max, bc
         for i, s in enumerate(sessions):
             if not s.cf.is_connected():
                 return f"drone {i} ({flight.uris[i]}): link lost"
-            if time.monotonic() - s.last_pos_t > ESTIMATE_LOST_S:
-                return f"drone {i} ({flight.uris[i]}): no position estimate for {ESTIMATE_LOST_S:g} s"
+            if drone_times is None:
+                age, unit = time.monotonic() - s.last_pos_t, "s"
+            else:
+                with lock:
+                    last = stamps[i]
+                age, unit = drone_times[i]() - last, "s of its firmware time"
+            if age > ESTIMATE_LOST_S:
+                return f"drone {i} ({flight.uris[i]}): no position estimate for {ESTIMATE_LOST_S:g} {unit}"
         return None
 
     relay()

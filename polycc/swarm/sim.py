@@ -42,12 +42,13 @@ def _thin(P: np.ndarray, eps: float) -> np.ndarray:
 
 def obstacle_clearance(traj: list, clearance, radius: float) -> tuple[list[int], list[float]]:
     """Per drone: samples inside an obstacle (clearance < r) and the minimum clearance to the splat
-    ellipsoids minus r (m, a lower bound), of each (k, 3) true path; (0, nan) without ``clearance``."""
+    ellipsoids minus r (m, a lower bound), of each (k, 3) true path; (0, nan) without ``clearance`` or
+    for an empty path (a drone whose app never flew)."""
     from polycc.sim.clearance import densify
 
     obst, clear = [], []
     for t in traj:
-        if clearance is None:
+        if clearance is None or not len(t):
             clear.append(math.nan)
             obst.append(0)
             continue

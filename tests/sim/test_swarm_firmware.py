@@ -88,3 +88,62 @@ def test_a_failed_simulator_flight_is_flown_once_more_and_a_crash_never(monkeypa
     with pytest.raises(SitlExited):
         sf.run_swarm_firmware("fw", "h", None, [(0, 0)], None, None, say=said.append)
     assert len(calls) == 1
+
+
+@pytest.mark.slow
+def test_a_paused_simulator_does_not_stop_the_swarm(tmp_path, capsys, monkeypatch):
+    """Regression (CI's failure of the p2p-4 flight at RTF 0.28): the ground's estimate watchdog counted wall
+    seconds, so a host too loaded to run a SITL instance for 2 s stopped the swarm with "no position
+    estimate for 2 s" while no simulated time had passed. Here the drone's firmware (cf2, SIGSTOP) gets no CPU
+    for 3 wall seconds right after its app is enabled: the watchdog now counts the drone's firmware time,
+    so the flight goes on, covers its peak and lands."""
+    import signal
+    import threading
+
+    import polycc.sim.firmware.sitl as sitl_mod
+    import polycc.swarm.fly as swarm_fly_mod
+
+    tree = sitl_tarball()
+    if not tree.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"{tree}: SITL firmware tarball not found; CI needs ../shared/firmware beside the clone")
+        pytest.skip(f"{tree}: SITL firmware tarball not found (set POLYCC_SHARED_FIRMWARE)")
+    sitls, paused, pauser = [], [], []
+    enter = sitl_mod.FirmwareSitl.__enter__
+
+    def entered(self):
+        sitls.append(enter(self))
+        return sitls[-1]
+
+    def pause(seconds):  # cf2 gets no CPU: the bridge, lock-stepped to its ticks, waits and answers the ground
+        for s in sitls:
+            s.fw.send_signal(signal.SIGSTOP)
+        t_stopped = [s.time() for s in sitls]
+        threading.Event().wait(seconds)
+        paused.append((seconds, [s.time() - t for s, t in zip(sitls, t_stopped)]))
+        for s in sitls:
+            s.fw.send_signal(signal.SIGCONT)
+
+    set_param = swarm_fly_mod.set_param
+
+    def set_and_pause(cf, name, value, **kw):
+        set_param(cf, name, value, **kw)
+        if name == "polycc.enable" and value == 1 and not pauser:
+            pauser.append(threading.Thread(target=pause, args=(1.5 * swarm_fly_mod.ESTIMATE_LOST_S,), daemon=True))
+            pauser[0].start()
+
+    monkeypatch.setattr(sitl_mod.FirmwareSitl, "__enter__", entered)
+    monkeypatch.setattr(swarm_fly_mod, "set_param", set_and_pause)
+    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
+    out = tmp_path / "b"
+    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(out)]) == 0
+    capsys.readouterr()
+    rc = main(["swarm-sim", str(out), "--drones", "1", "--random-targets", "1", "--seed", "1", "--t-max", "30",
+               "--takeoff", "0.7", "--firmware", str(tree)])
+    text = "".join(capsys.readouterr())
+    pauser[0].join()
+    assert paused and paused[0][0] == 3.0 and max(paused[0][1]) < 0.05, (paused, text)  # no simulated time passed
+    assert rc == 0 and (out / "swarm.json").is_file(), text
+    s = json.loads((out / "swarm.json").read_text())
+    assert s["firmware"]["outcome"] == "covered" and s["firmware"]["landed"], text
+    assert s["firmware"]["sitl_reruns"] == [] and s["collisions"] == 0, text

@@ -128,3 +128,20 @@ def test_targets_file_and_cli_errors_are_one_line(tmp_path, room, capsys):
     assert "Traceback" not in err and "polycc build" in err and "--scene" in err
     assert main(["swarm-sim", str(d), "--drones", "17"]) == 2  # the app's table holds 16
     assert "out of range" in capsys.readouterr().err
+
+
+def test_a_drone_whose_app_never_flew_has_no_clearance_and_no_collision():
+    """Regression: run_swarm_firmware measured the clearance of a drone whose app was never enabled (a
+    flight stopped during the takeoff) at its landed position, on the floor, and reported every such drone
+    as a drone-obstacle collision (CI's failed p2p-4 run: "collisions: 4"). An empty path now has none; a
+    path through the floor still counts."""
+    from polycc.scene.ellipsoids import Ellipsoids
+    from polycc.sim.clearance import Clearance
+    from polycc.swarm.sim import obstacle_clearance
+
+    floor = Ellipsoids(np.array([[0.0, 0.0, -0.05]]), np.eye(3)[None], np.array([[2.0, 2.0, 0.05]]))
+    obst, clear = obstacle_clearance([np.empty((0, 3)), np.array([[0.0, 0.0, 0.5]]), np.array([[0.0, 0.0, 0.0]])],
+                                     Clearance(floor), 0.1)
+    assert obst[0] == 0 and np.isnan(clear[0])
+    assert obst[1] == 0 and clear[1] > 0.3
+    assert obst[2] > 0 and clear[2] < 0
