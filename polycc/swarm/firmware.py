@@ -146,15 +146,15 @@ def _fly_once(build, starts, cmap, targets, cfg, takeoff, relay, air_drop, t0, s
         say(f"{n} SITL instances up in {time.monotonic() - t0:.0f} s")
         marks: list[tuple[float, list[float]]] = []
 
-        def clock() -> float:
-            ts = [sl.time() for sl in sitls]
-            marks.append((time.monotonic(), ts))
-            return min(ts)
-
-        def drone_time(sl) -> float:  # the estimate watchdog's clock; raises SitlStall on a hung simulation
+        def drone_time(sl) -> float:  # raises SitlStall when its simulation has not advanced for STALL_S wall s
             t = sl.time()
             sl.note_time(t)
             return t
+
+        def clock() -> float:  # the task's clock (the slowest drone's), and so the landing's: never waits forever
+            ts = [drone_time(sl) for sl in sitls]
+            marks.append((time.monotonic(), ts))
+            return min(ts)
 
         fl = swarm_fly([sl.uri for sl in sitls], cmap, targets, controller=cfg.controller, takeoff=takeoff,
                        radius=cfg.radius, t_max=cfg.t_max_s, bcast_hz=min(10.0, 1000.0 / cfg.bcast_ms),
