@@ -35,20 +35,3 @@ def scenes_dir() -> Path:
     if not SCENES.is_dir():
         pytest.skip(f"real scenes not found at {SCENES} (clone with ../shared beside the repo)")
     return SCENES
-
-
-# The modules with the longest tests (CI's --durations of 2026-12-06), longest first. Collected first, so
-# pytest-xdist hands them out at the start and the many short tests fill both workers at the end: in
-# collection order the 4-drone swarm (170-245 s) ended at about 93% of the suite and could leave the other
-# worker idle. Each module keeps its own order (its module fixtures are set up once per worker, as before).
-LONG_FIRST = ("tests/sim/test_swarm_firmware.py", "tests/sim/test_firmware_sitl.py",
-              "tests/onboard/test_kernel_index.py", "tests/ground/test_flash_upstream.py", "tests/test_install.py",
-              "tests/cover/test_cover_scenes.py", "tests/onboard/test_shield.py")
-
-
-def pytest_collection_modifyitems(session, config, items):
-    def rank(item):
-        path = Path(str(item.fspath)).resolve().relative_to(Path(__file__).resolve().parent.parent).as_posix()
-        return LONG_FIRST.index(path) if path in LONG_FIRST else len(LONG_FIRST)
-
-    items.sort(key=rank)  # stable: the collection order within each rank
