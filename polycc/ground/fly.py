@@ -17,6 +17,12 @@ or too-slow statuses and when the position estimate is lost. While connected, ap
 heartbeats go out every 100 ms, so the app's link-loss watchdog (polycc_app.h) lands the vehicle
 if the ground disappears. Positions are ``stateEstimate.x/y/z``, metres, world frame;
 :class:`FlightLog` holds the rows (time in s).
+
+Every wait (the ``timeout``, the takeoff's, the hand-over's and the landing's) is counted in the
+drone's own seconds: the firmware's log timestamps, plus the wall seconds since the latest sample.
+On a real Crazyflie that is wall time; a simulated one (the firmware's SITL on a loaded host runs at
+a fraction of real time) gets the simulated seconds its manoeuvres take. Only the estimate watchdog
+counts wall seconds: a second without any sample is a link problem whatever the drone's clock.
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ _SIZES = {"uint8_t": 1, "int8_t": 1, "uint16_t": 2, "int16_t": 2, "uint32_t": 4,
 TAKEOFF_SPEED = 0.5  # m/s, high-level takeoff
 LAND_SPEED = 0.3  # m/s, high-level landing
 HEARTBEAT_S = 0.1  # app-channel heartbeat period
-ESTIMATE_LOST_S = 1.0  # no position sample for this long: stop
+ESTIMATE_LOST_S = 1.0  # no position sample for this many wall seconds: stop
 LANDED_Z = 0.08  # m: on the floor
 
 
@@ -113,9 +119,13 @@ def _has_param(cf, name: str) -> bool:
 class _Session:
     """One connected flight: logs, heartbeats and the waits, with the reason to stop."""
 
-    def __init__(self, cf, log: FlightLog, lock: threading.Lock, on_update, deadline: float):
-        self.cf, self.log, self.lock, self.on_update, self.deadline = cf, log, lock, on_update, deadline
-        self.last_pos_t = time.monotonic()
+    def __init__(self, cf, log: FlightLog, lock: threading.Lock, on_update, timeout_s: float):
+        self.cf, self.log, self.lock, self.on_update = cf, log, lock, on_update
+        self.last_pos_t = self._wall0 = time.monotonic()
+        self._stamp: tuple[float, float] | None = None  # (drone s since the first sample, its wall time)
+        self._first_ms: tuple[int, float] | None = None  # the first sample's firmware ms and its wall time
+        self._now = 0.0
+        self.deadline = timeout_s  # in :meth:`now`'s seconds
         self._stop_hb = threading.Event()
         self._hb = threading.Thread(target=self._heartbeat, daemon=True)
 
@@ -137,6 +147,21 @@ class _Session:
     def stop_heartbeats(self) -> None:
         self._stop_hb.set()
 
+    def stamp(self, timestamp_ms: int) -> None:
+        """A log sample with the firmware's ``timestamp_ms`` arrived now (call with the lock held)."""
+        wall = time.monotonic()
+        if self._first_ms is None:
+            self._first_ms = (timestamp_ms, wall - self._wall0)
+        self._stamp = ((timestamp_ms - self._first_ms[0]) / 1000.0 + self._first_ms[1], wall)
+
+    def now(self) -> float:
+        """The drone's seconds since the session began (module docstring); never decreasing."""
+        with self.lock:
+            st = self._stamp
+            t = time.monotonic() - (self._wall0 if st is None else st[1]) + (0.0 if st is None else st[0])
+            self._now = max(self._now, t)
+            return self._now
+
     def position(self):
         with self.lock:
             pos = [self.log.latest.get(n) for n in POSITION]
@@ -148,16 +173,19 @@ class _Session:
         return None if st is None else int(st)
 
     def wait(self, done, what: str, timeout_s: float | None = None, watch_app: bool = True) -> str | None:
-        """Poll until ``done()``; returns None, or why it stopped (``timeout``, ``lost``, ``stopped: ...``)."""
-        t_end = self.deadline if timeout_s is None else min(self.deadline, time.monotonic() + timeout_s)
+        """Poll until ``done()``; returns None, or why it stopped (``timeout``, ``lost``, ``stopped: ...``).
+        ``timeout_s`` and the session's deadline are the drone's seconds (:meth:`now`)."""
+        t_end = self.deadline if timeout_s is None else min(self.deadline, self.now() + timeout_s)
         while True:
             time.sleep(0.05)
             if self.on_update is not None:
                 self.on_update(self.log)
             if not self.cf.is_connected():
                 return "lost"
-            now = time.monotonic()
-            if now - self.last_pos_t > ESTIMATE_LOST_S:
+            now = self.now()
+            with self.lock:
+                silent = time.monotonic() - self.last_pos_t
+            if silent > ESTIMATE_LOST_S:
                 return f"stopped: no position estimate for {ESTIMATE_LOST_S:g} s while {what}"
             st = self.status()
             if watch_app and st in STOP_REASONS:
@@ -211,7 +239,7 @@ def fly(uri: str, goal, log_vars: list[str], timeout_s: float = 60.0, arrive_tol
             raise PolyccError("stabilizer.controller is not PID (1); the app only flies with the PID controller: "
                               "set it with cf.param.set_value('stabilizer.controller', 1) or in cfclient")
         log = FlightLog(["time_s"] + wanted)
-        session = _Session(cf, log, lock, on_update, time.monotonic() + timeout_s)
+        session = _Session(cf, log, lock, on_update, timeout_s)
         t_first: list[int] = []
 
         def on_data(timestamp, data, conf):
@@ -219,6 +247,7 @@ def fly(uri: str, goal, log_vars: list[str], timeout_s: float = 60.0, arrive_tol
                 log.latest.update(data)
                 if "stateEstimate.x" in data:
                     session.last_pos_t = time.monotonic()
+                    session.stamp(timestamp)
                 if "stateEstimate.x" in data and len(log.latest) == len(wanted):
                     if not t_first:
                         t_first.append(timestamp)
@@ -306,8 +335,8 @@ def _leave(cf, session: _Session, log: FlightLog, land: bool) -> None:
             log.note(f"high-level landing in {duration:.1f} s")
             cf.high_level_commander.land(0.0, duration)
             why = session.wait(lambda: session.position()[2] < LANDED_Z, "landing", duration + 5.0, watch_app=False)
-            if why is None:
-                time.sleep(1.0)  # the planner idles at the end of the landing: motors off
+            if why is None:  # the planner idles at the end of the landing: motors off
+                session.wait(lambda: False, "landing", 1.0, watch_app=False)
                 if log.outcome == "arrived":
                     log.outcome = "landed"
                 log.note("landed; the high-level commander stopped the motors")

@@ -188,7 +188,7 @@ def swarm_fly(uris: list[str], cmap: CoverageMap, targets: Targets, *, controlle
         for i, uri in enumerate(uris):
             cf = sw._cfs[uri].cf
             _check(cf, uri)
-            s = _Session(cf, logs[i], lock, None, time.monotonic() + t_max + 120.0)
+            s = _Session(cf, logs[i], lock, None, t_max + 120.0)
             sessions.append(s)
             if p2p and cf.log.toc.get_element_by_complete_name("polycc.p2pRx") is None:
                 raise PolyccError(f"{uri}: the app has no P2P relay (log polycc.p2pRx); flash a current polycc "
