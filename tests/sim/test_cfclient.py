@@ -16,7 +16,6 @@ import sys
 
 import pytest
 
-from polycc.cli import main
 from polycc.testing.cfclient_connect import free_scan_port, run_cfclient
 
 pytest.importorskip("cflib")
@@ -24,10 +23,8 @@ pytest.importorskip("cfclient", reason="pip install cfclient (in the [dev] extra
 
 
 @pytest.fixture(scope="module")
-def arena(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cfc")
-    assert main(["demo-scene", str(d / "arena.ply")]) == 0
-    assert main(["build", str(d / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(d / "b")]) == 0
+def arena(tmp_path_factory, demo_build):
+    d = demo_build(tmp_path_factory.mktemp("cfc"))
     return d / "b"
 
 

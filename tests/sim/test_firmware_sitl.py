@@ -45,17 +45,14 @@ STARVED_LATE = 0.05  # share of the app's ticks that woke late above which a rea
 
 
 @pytest.fixture(scope="module")
-def arena(tmp_path_factory):
-    from polycc.cli import main
+def arena(tmp_path_factory, demo_build):
 
     tree = sitl_tarball()
     if not tree.exists():
         if os.environ.get("CI"):
             pytest.fail(f"{tree}: SITL firmware tarball not found; CI needs ../shared/firmware beside the clone")
         pytest.skip(f"{tree}: SITL firmware tarball not found (set POLYCC_SHARED_FIRMWARE)")
-    d = tmp_path_factory.mktemp("fwarena")
-    assert main(["demo-scene", str(d / "arena.ply")]) == 0
-    assert main(["build", str(d / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(d / "b")]) == 0
+    d = demo_build(tmp_path_factory.mktemp("fwarena"))
     side = json.loads((d / "arena.json").read_text())
     start = list(side["start"])
     from polycc.sim.firmware.build import build_cf2
@@ -413,9 +410,9 @@ def test_polycc_sim_firmware_trials(arena, tmp_path, capsys):
 
     out = arena["dir"]
     assert main(["sim", str(out), "--scene", str(arena["scene"]), "--firmware", str(arena["tree"]),
-                 "--trials", "3", "--jitter", "0.2"]) == 0
+                 "--trials", "2", "--jitter", "0.2"]) == 0
     text = capsys.readouterr().out
-    assert "collisions: 0" in text and "success 3/3" in text, text[-2000:]
+    assert "collisions: 0" in text and "success 2/2" in text, text[-2000:]
     assert (out / "trajectories.png").is_file() and (out / "trajectories.npz").is_file()
 
 

@@ -15,12 +15,9 @@ pytest.importorskip("cflib")
 
 
 @pytest.fixture(scope="module")
-def arena(tmp_path_factory):
-    from polycc.cli import main
+def arena(tmp_path_factory, demo_build):
 
-    d = tmp_path_factory.mktemp("arena")
-    assert main(["demo-scene", str(d / "arena.ply")]) == 0
-    assert main(["build", str(d / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(d / "b")]) == 0
+    d = demo_build(tmp_path_factory.mktemp("arena"))
     side = json.loads((d / "arena.json").read_text())
     start = list(side["start"])
     return {"dir": d / "b", "start": [start[0], start[1], 0.0], "goal": list(side["goal"])}

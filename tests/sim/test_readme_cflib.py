@@ -28,12 +28,9 @@ def test_the_example_is_plain_cflib():
 
 
 @pytest.mark.slow
-def test_readme_cflib_example_flies_and_lands(tmp_path):
-    from polycc.cli import main
+def test_readme_cflib_example_flies_and_lands(tmp_path, demo_build):
 
-    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
-    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000",
-                 "-o", str(tmp_path / "b")]) == 0
+    demo_build(tmp_path)
     side = json.loads((tmp_path / "arena.json").read_text())
     start = [side["start"][0], side["start"][1], 0.0]
     code = readme_example()

@@ -32,12 +32,9 @@ def test_the_example_is_plain_cflib_and_uses_the_shield():
 
 
 @pytest.mark.slow
-def test_readme_shield_example_stops_in_front_of_the_box_and_off_it_crashes(tmp_path):
-    from polycc.cli import main
+def test_readme_shield_example_stops_in_front_of_the_box_and_off_it_crashes(tmp_path, demo_build):
 
-    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
-    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000",
-                 "-o", str(tmp_path / "b")]) == 0
+    demo_build(tmp_path)
     code = readme_example()
     worst, cut = {}, {}
     for shield in (True, False):

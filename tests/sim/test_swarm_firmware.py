@@ -26,7 +26,7 @@ pytestmark = pytest.mark.skipif(shutil.which("cmake") is None and not os.environ
 
 @pytest.mark.slow
 @pytest.mark.parametrize("relay,drones", [("p2p", 4)])  # ("ground", 2) passes too (76 s); off to keep CI < 30 min
-def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones):
+def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones, demo_build):
     """p2p (the default, issue 19's CI scenario): the four firmwares broadcast to each other through the SITL
     air (real radiolink.h calls, real CRTP RX task), the ground sends heartbeats only; ground: the relay
     over cflib's app channel."""
@@ -35,9 +35,7 @@ def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones):
         if os.environ.get("CI"):
             pytest.fail(f"{tree}: SITL firmware tarball not found; CI needs ../shared/firmware beside the clone")
         pytest.skip(f"{tree}: SITL firmware tarball not found (set POLYCC_SHARED_FIRMWARE)")
-    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
-    out = tmp_path / "b"
-    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(out)]) == 0
+    out = demo_build(tmp_path) / "b"
     capsys.readouterr()
     rc = main(["swarm-sim", str(out), "--drones", str(drones), "--random-targets", "1", "--seed", "1", "--t-max", "30",
                "--takeoff", "0.7", "--firmware", str(tree)] + (["--relay", relay] if relay != "p2p" else []))
@@ -91,7 +89,7 @@ def test_a_failed_simulator_flight_is_flown_once_more_and_a_crash_never(monkeypa
 
 
 @pytest.mark.slow
-def test_a_paused_simulator_does_not_stop_the_swarm(tmp_path, capsys, monkeypatch):
+def test_a_paused_simulator_does_not_stop_the_swarm(tmp_path, capsys, monkeypatch, demo_build):
     """Regression (CI's failure of the p2p-4 flight at RTF 0.28): the ground's estimate watchdog counted wall
     seconds, so a host too loaded to run a SITL instance for 2 s stopped the swarm with "no position
     estimate for 2 s" while no simulated time had passed. Here the drone's firmware (cf2, SIGSTOP) gets no CPU
@@ -134,9 +132,7 @@ def test_a_paused_simulator_does_not_stop_the_swarm(tmp_path, capsys, monkeypatc
 
     monkeypatch.setattr(sitl_mod.FirmwareSitl, "__enter__", entered)
     monkeypatch.setattr(swarm_fly_mod, "set_param", set_and_pause)
-    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
-    out = tmp_path / "b"
-    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(out)]) == 0
+    out = demo_build(tmp_path) / "b"
     capsys.readouterr()
     rc = main(["swarm-sim", str(out), "--drones", "1", "--random-targets", "1", "--seed", "1", "--t-max", "30",
                "--takeoff", "0.7", "--firmware", str(tree)])

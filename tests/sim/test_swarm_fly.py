@@ -36,10 +36,8 @@ def _free_ports(n):
 
 
 @pytest.fixture(scope="module")
-def arena(tmp_path_factory):
-    d = tmp_path_factory.mktemp("swfly")
-    assert main(["demo-scene", str(d / "arena.ply")]) == 0
-    assert main(["build", str(d / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o", str(d / "b")]) == 0
+def arena(tmp_path_factory, demo_build):
+    d = demo_build(tmp_path_factory.mktemp("swfly"))
     return d
 
 

@@ -93,12 +93,10 @@ def test_coverage_behind_the_wall(room, kind):
 
 
 @pytest.mark.slow
-def test_swarm_sim_cli_on_the_demo_arena(tmp_path):
+def test_swarm_sim_cli_on_the_demo_arena(tmp_path, demo_build):
     from polycc.cli import main
 
-    assert main(["demo-scene", str(tmp_path / "arena.ply")]) == 0
-    assert main(["build", str(tmp_path / "arena.ply"), "--flash-kb", "8", "--mc-samples", "5000", "-o",
-                 str(tmp_path / "b")]) == 0
+    demo_build(tmp_path)
     assert main(["swarm-sim", str(tmp_path / "b"), "--drones", "4", "--random-targets", "3", "--t-max", "30"]) == 0
     s = json.loads((tmp_path / "b" / "swarm.json").read_text())
     assert s["collisions"] == 0 and s["collisions_drone_drone"] == 0 and s["collisions_drone_obstacle"] == 0
