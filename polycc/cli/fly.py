@@ -73,8 +73,8 @@ def register(subparsers) -> None:
     p.add_argument("--csv", metavar="FILE", default="fly_log.csv",
                    help="log file: one row per position sample, time in s from the first sample (default: %(default)s)")
     p.add_argument("--timeout", type=number(float, 0.0, 1e6, lo_open=True, unit="s"), default=60.0, metavar="S",
-                   help="give up after S seconds of the drone's time (its log timestamps: wall time on a real Crazyflie, "
-                        "simulated time on a SITL) (the app hands over to the high-level commander) "
+                   help="give up after S seconds of the drone's time (its log timestamps: wall time on a real "
+                        "Crazyflie, simulated time on a SITL) (the app hands over to the high-level commander) "
                         "(default: %(default)s)")
     p.add_argument("--arrive-tol", type=number(float, 0.0, 10.0, lo_open=True, unit="m"), default=0.1, metavar="M",
                    help="arrival: distance to a waypoint, m (default: %(default)s)")
