@@ -368,13 +368,23 @@ def polycc_fly_from_floor(uri, world, arena) -> dict:
 
     out: dict = {"name": "polycc_fly_from_floor"}
     log: dict = {}
+    clocks: list[tuple[float, float]] = []  # (the flight log's latest time, the simulator's time) as they go
+
+    def seen(fl_log):
+        if fl_log.rows:
+            clocks.append((fl_log.rows[-1][0], world.time()))
+
     with Recorder(world, log) as rec:
         rec.mark("fly")
-        fl = fly(uri, [arena["goal"]], ["polycc.psi"], timeout_s=60.0, arrive_tol=0.1, takeoff=TAKEOFF_Z, land=True)
+        fl = fly(uri, [arena["goal"]], ["polycc.psi"], timeout_s=60.0, arrive_tol=0.1, takeoff=TAKEOFF_Z, land=True,
+                 on_update=seen)
         world.sleep(1.0)
     a = rec.array()
     out["outcome"] = fl.outcome
     out["events"] = fl.events
+    # the flight log's clock (the firmware's log timestamps, which `polycc fly` times its waits by) against
+    # the simulator's: seconds each advanced between the first and the last sample seen
+    out["clock_spans_s"] = [clocks[-1][i] - clocks[0][i] for i in (0, 1)] if len(clocks) > 1 else [math.nan] * 2
     out["end"] = world.truth()[0].tolist()
     out["max_descent_speed"] = float(-a[:, 4].min()) if len(a) else math.inf
     out["motors_on_end"] = bool(world.truth()[2])
