@@ -8,10 +8,10 @@ splat count and voxel size g) the same command runs twice in one run of this scr
 * ours: this checkout, `polycc build ... --jobs J` (default: every core).
 
 Measured per run: wall seconds, the stage times it prints (occupancy / cover / budget), CPU
-seconds and peak RSS of the whole process tree (psutil, sampled every 0.2 s: the sum over the
-main process and its workers), n, bytes, the conservativeness with its 95 % interval; our
-result must pass `polycc verify` (the stored polytopes as the C decodes them, every voxel and
-splat samples). Then: the growth of the build time from 5 to 2.5 cm, `--dask local:1` against
+seconds and peak RSS of the whole process tree (psutil, sampled every 0.2 s: the sum over the main
+process and its workers, each process's CPU counted once), n, bytes, the conservativeness with its
+95 % interval; our result must pass `polycc verify` (the stored polytopes as the C decodes them,
+every voxel and splat samples). Then: the growth of the build time from 5 to 2.5 cm, `--dask local:1` against
 `--dask local:2` on the 2.5 cm case, and a projection of the 15M-splat, 1 cm case from the
 measured task costs per kd depth (cover.npz meta).
 
@@ -63,7 +63,16 @@ def room(splats: int) -> Path:
 
 
 def run_tree(cmd: list[str], env: dict, log: Path) -> dict:
-    """Run cmd; wall s, CPU s and peak RSS (GB) of its process tree, exit code, stdout."""
+    """Run cmd; wall s, CPU s and peak RSS (GB) of its process tree, exit code, stdout.
+
+    Sampled every 0.2 s (psutil) over the main process and every descendant: peak RSS is the largest sum,
+    CPU seconds the sum over processes of each one's own user + system time at its last sample (a process's
+    CPU after its last sample is lost: at most 0.2 s of each). Regression: a process's reaped children's
+    times were added to its own, so a worker forked by the build (the selection forks a pool per stage) was
+    counted twice, once under its own pid and again in its parent's; the kernel's account of reaped children
+    (``getrusage``, or the shell's ``time``) is no substitute: it misses the forkserver pool's workers, which
+    the build never reaps itself (the shell's ``time`` read the 6M-splat room's build as 95 CPU s in 111 s,
+    where /proc/stat had both cores busy 1.85 of 2 on average)."""
     import psutil
 
     t0 = time.perf_counter()
@@ -73,13 +82,12 @@ def run_tree(cmd: list[str], env: dict, log: Path) -> dict:
         peak, cpu = 0, {}
         while p.poll() is None:
             try:
-                procs = [root] + root.children(recursive=True)
                 rss = 0
-                for q in procs:
+                for q in [root] + root.children(recursive=True):
                     try:
                         rss += q.memory_info().rss
                         t = q.cpu_times()
-                        cpu[q.pid] = t.user + t.system + t.children_user + t.children_system
+                        cpu[(q.pid, q.create_time())] = t.user + t.system
                     except psutil.Error:
                         pass
                 peak = max(peak, rss)
@@ -87,8 +95,9 @@ def run_tree(cmd: list[str], env: dict, log: Path) -> dict:
                 pass
             time.sleep(0.2)
     wall = time.perf_counter() - t0
-    return {"wall_s": wall, "cpu_s": sum(cpu.values()), "peak_rss_gb": peak / 2**30, "rc": p.returncode,
-            "out": log.read_text(errors="replace")}
+    used = sum(cpu.values())
+    return {"wall_s": wall, "cpu_s": used, "busy_cores": used / max(wall, 1e-9), "peak_rss_gb": peak / 2**30,
+            "rc": p.returncode, "out": log.read_text(errors="replace")}
 
 
 def parse_summary(text: str) -> dict:
