@@ -31,6 +31,8 @@ DEFAULT_CLEARANCE_CAP = 0.3  # m (measured: the make-demo build keeps n = 396 at
 DEFAULT_CELLS = (0.25, 0.5, 1.0)  # cell sizes s (powers of two, metres) tried by choose_index
 NEGLIGIBLE_NATS = 17.0
 _CUSHION = 1e-9  # relative outward cushion of the float64 geometry (errors are ~1e-15 relative)
+SPLIT_BATCH_MAX = 64  # leaves whose children build_index lists in one pass (see there)
+GRID_PAIRS_PER_PASS = 1 << 21  # (cell, half-plane) pairs of the top cells listed in one pass, about
 
 
 
@@ -163,50 +165,98 @@ class _Geometry:
         expensive path there (a new maximum or an accumulated term, one exp each): g_l above the lead
         plane's minimum over the box minus the negligible cut (the running maximum is at least the lead's
         value).  U is taken over the candidates only (an upper bound all the same)."""
-        h = half + self.eps
-        cand = np.asarray(cand, np.int64)
-        if len(cand) == 0:
-            return np.zeros((len(centres), 0), bool), np.zeros((len(centres), 0), np.int64)
+        return self.listed_many([(centres, half, cand)])[0]
+
+    def listed_many(self, groups: list) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`listed` of each (centres, half, cand) of ``groups``, in one pass over all of them (the
+        octree's splits: one call per split cost more in numpy's per-call overhead than in arithmetic).
+        Bit for bit the values of one call per group: every value is computed by the same elementwise
+        operations in the same order, the plane values g by one matrix product per group (the products'
+        shapes are those of a single call), and the reductions are exact (max, min, integer sums) or over
+        the same contiguous length-3 rows (the box distance).
+
+        Layout: the groups' candidates, planes and boxes concatenated; the (box, plane) pairs of group p a
+        block of m_p x P_p in row-major order, its (box, candidate) pairs a block of m_p x J_p."""
+        out: list = [None] * len(groups)
+        live = []
+        for gi, (centres, _, cand) in enumerate(groups):
+            if len(cand) == 0:
+                out[gi] = (np.zeros((len(centres), 0), bool), np.zeros((len(centres), 0), np.int64))
+            else:
+                live.append(gi)
+        if not live:
+            return out
+        cen_g = [np.asarray(groups[gi][0], np.float64).reshape(-1, 3) for gi in live]
+        cand = np.concatenate([np.asarray(groups[gi][2], np.int64) for gi in live])
+        hs = np.array([groups[gi][1] for gi in live], np.float64) + self.eps  # h per group, as half + eps
+        m = np.array([len(c) for c in cen_g], np.int64)
+        J = np.array([len(groups[gi][2]) for gi in live], np.int64)
         cnt = self.count[cand]
-        seg = np.cumsum(cnt) - cnt
-        rows = np.arange(int(seg[-1] + cnt[-1])) + np.repeat(self.first[cand] - seg, cnt)
+        cstart = np.cumsum(cnt) - cnt  # each candidate's first plane in the concatenated planes
+        P = np.add.reduceat(cnt, np.r_[0, np.cumsum(J)[:-1]])  # planes per group
+        pstart = np.cumsum(P) - P
+        jstart = np.cumsum(J) - J
+        mstart = np.cumsum(m) - m
+        rows = np.repeat(self.first[cand] - cstart, cnt) + np.arange(int(cnt.sum()))
         pm = self.pm[rows]
-        g = centres @ pm[:, :3].T - pm[:, 3]
-        tol = _CUSHION * (1.0 + np.abs(centres).sum(axis=1)[:, None] + np.abs(pm[:, 3])[None, :])
-        UBp = g + h * self.w1[rows] + tol
-        LBp = g - h * self.w1[rows] - tol
-        UB = np.maximum.reduceat(UBp, seg, axis=1)
-        LB = np.maximum.reduceat(LBp, seg, axis=1)
-        owner = np.repeat(np.arange(len(cand)), cnt)
-        # the lead plane the kernel scans first is the one of the octant of p - c_k; over the box only
-        # the octants whose signs occur there are possible (-0.0 counts negative, as in the kernel)
-        cc = self.c[cand]
-        pos = (centres[:, None, :] + h) >= cc[None]  # u_i >= 0 possible
-        neg = (centres[:, None, :] - h) <= cc[None]  # u_i <= 0 possible
-        # (m, J, 8): octant o possible over the box
-        allowed = np.all(np.where(_OCTANT_BITS[None, None], neg[:, :, None, :], pos[:, :, None, :]), axis=3)
-        lead_rows = seg[:, None] + self.lead[cand]  # (J, 8)
-        lead_lb = np.where(allowed, LBp[:, lead_rows], np.inf).min(axis=2)
-        acc = np.add.reduceat((UBp > lead_lb[:, owner] - self.cut).astype(np.int64), seg, axis=1)
-        cc, R, ig = self.c[cand], self.R[cand], self.ig[cand]
-        dbox = np.linalg.norm(np.maximum(np.abs(centres[:, None, :] - cc[None]) - h, 0.0), axis=2)
-        LB = np.maximum(LB, _ball_lb(dbox, R, ig))
-        thr = np.minimum(UB.min(axis=1), self.D) + self.slack
-        return LB < thr[:, None], acc
+        centres = np.concatenate(cen_g)
+        # (box, plane) pairs: g from one product per group, the rest flat
+        g = np.concatenate([(c @ pm[a:a + n, :3].T - pm[a:a + n, 3]).ravel()
+                            for c, a, n in zip(cen_g, pstart.tolist(), P.tolist())])
+        B = m * P
+        bstart = np.cumsum(B) - B
+        grp = np.repeat(np.arange(len(live)), B)
+        local = np.arange(int(B.sum())) - bstart[grp]
+        box = local // P[grp]
+        plane = pstart[grp] + (local - box * P[grp])
+        box += mstart[grp]
+        hw = (np.repeat(hs, P) * self.w1[rows])[plane]
+        tol = _CUSHION * (1.0 + np.abs(centres).sum(axis=1)[box] + np.abs(pm[:, 3])[plane])
+        UBp = g + hw + tol
+        LBp = g - hw - tol
+        # (box, candidate) pairs: their planes are a contiguous run of each box's row
+        C = m * J
+        grp_c = np.repeat(np.arange(len(live)), C)
+        local_c = np.arange(int(C.sum())) - (np.cumsum(C) - C)[grp_c]
+        box_c = local_c // J[grp_c]
+        kc = jstart[grp_c] + (local_c - box_c * J[grp_c])  # index into cand
+        seg = bstart[grp_c] + box_c * P[grp_c] + (cstart[kc] - pstart[grp_c])
+        box_c += mstart[grp_c]
+        UB = np.maximum.reduceat(UBp, seg)
+        LB = np.maximum.reduceat(LBp, seg)
+        ck = cand[kc]
+        cen, cc, hc = centres[box_c], self.c[ck], hs[grp_c][:, None]
+        pos = (cen + hc) >= cc  # u_i >= 0 possible
+        neg = (cen - hc) <= cc  # u_i <= 0 possible
+        # (pairs, 8): octant o possible over the box (-0.0 counts negative, as in the kernel)
+        allowed = np.all(np.where(_OCTANT_BITS[None], neg[:, None, :], pos[:, None, :]), axis=2)
+        lead_lb = np.where(allowed, LBp[seg[:, None] + self.lead[ck]], np.inf).min(axis=1)
+        acc = np.add.reduceat((UBp > np.repeat(lead_lb - self.cut, cnt[kc])).astype(np.int64), seg)
+        dbox = np.linalg.norm(np.maximum(np.abs(cen - cc) - hc, 0.0), axis=1)
+        LB = np.maximum(LB, _ball_lb(dbox, self.R[ck], self.ig[ck]))
+        # per box: min over its candidates (a contiguous run), capped at D
+        per_box = np.repeat(J, m)
+        thr = np.minimum(np.minimum.reduceat(UB, np.cumsum(per_box) - per_box), self.D) + self.slack
+        lst = LB < np.repeat(thr, per_box)
+        k = 0
+        for gi, mi, Ji in zip(live, m.tolist(), J.tolist()):
+            out[gi] = (lst[k:k + mi * Ji].reshape(mi, Ji), acc[k:k + mi * Ji].reshape(mi, Ji))
+            k += mi * Ji
+        return out
 
     def near(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Polytopes whose ball bound (as in :meth:`listed`) over the box [lo, hi] (grown by eps) is below
         D + slack: every other one is listed by no box inside it (its lower bound there is at least as
         large, and its upper bound, at least its lower bound, cannot lower the threshold below D + slack)."""
-        cen, half = (lo + hi) / 2, (hi - lo) / 2 + self.eps
-        dbox = np.linalg.norm(np.maximum(np.abs(cen[None] - self.c) - half, 0.0), axis=1)
-        return np.flatnonzero(_ball_lb(dbox, self.R, self.ig) < self.D + self.slack)
+        return self.near_many(np.asarray(lo, np.float64)[None], np.asarray(hi, np.float64)[None])[0]
 
     def listed_grid(self, ijk: np.ndarray, centres: np.ndarray, half: float, block: int = 4):
         """:meth:`listed` of every top cell (integer cell ``ijk``, ``centres``, half side ``half``) against
         every polytope, as (m, n) arrays, the same values for the listed entries: blocks of ``block``^3 cells
         are evaluated against the polytopes :meth:`near` the block only (the top level cost grew with
-        cells x half-planes: 75 of 112 s of the 150k-splat room's budget at 2.5 cm)."""
+        cells x half-planes: 75 of 112 s of the 150k-splat room's budget at 2.5 cm), many blocks per
+        :meth:`listed_many` pass (about :data:`GRID_PAIRS_PER_PASS` (cell, half-plane) pairs each; one call per
+        block cost more in numpy's per-call overhead than in arithmetic on small scenes)."""
         n = len(self.first)
         listed = np.zeros((len(centres), n), bool)
         accs = np.zeros((len(centres), n), np.int64)
@@ -214,16 +264,44 @@ class _Geometry:
         _, which = np.unique(blk, axis=0, return_inverse=True)
         order = np.argsort(which.ravel(), kind="stable")
         cuts = np.flatnonzero(np.diff(which.ravel()[order])) + 1
-        for rows in np.split(order, cuts):
-            lo = centres[rows].min(axis=0) - half
-            hi = centres[rows].max(axis=0) + half
-            cand = self.near(lo, hi)
-            for i in range(0, len(rows), 2048):
-                r = rows[i:i + 2048]
-                a, b = self.listed(centres[r], half, cand)
+        starts = np.r_[0, cuts]
+        lo = np.minimum.reduceat(centres[order], starts, axis=0) - half
+        hi = np.maximum.reduceat(centres[order], starts, axis=0) + half
+        near = self.near_many(lo, hi)
+        groups, where, size = [], [], 0
+
+        def flush():
+            for (r, cand), (a, b) in zip(where, self.listed_many(groups)):
                 listed[np.ix_(r, cand)] = a
                 accs[np.ix_(r, cand)] = b
+            groups.clear()
+            where.clear()
+
+        planes = np.r_[0, np.cumsum(self.count)]
+        for rows, cand in zip(np.split(order, cuts), near):
+            for i in range(0, len(rows), 2048):
+                r = rows[i:i + 2048]
+                groups.append((centres[r], half, cand))
+                where.append((r, cand))
+                size += len(r) * int(planes[cand + 1].sum() - planes[cand].sum())
+                if size >= GRID_PAIRS_PER_PASS:
+                    flush()
+                    size = 0
+        flush()
         return listed, accs
+
+    def near_many(self, lo: np.ndarray, hi: np.ndarray, chunk: int = 1 << 20) -> list[np.ndarray]:
+        """:meth:`near` of each box [lo[b], hi[b]] ((B, 3) arrays), the same values, computed for many
+        boxes at once (about ``chunk`` (box, polytope) pairs per pass)."""
+        cen, half = (lo + hi) / 2, (hi - lo) / 2 + self.eps
+        step = max(1, chunk // max(1, len(self.c)))
+        out = []
+        for i in range(0, len(lo), step):
+            c, h = cen[i:i + step], half[i:i + step]
+            dbox = np.linalg.norm(np.maximum(np.abs(c[:, None, :] - self.c[None]) - h[:, None, :], 0.0), axis=2)
+            ok = _ball_lb(dbox, self.R[None], self.ig[None]) < self.D + self.slack
+            out += [np.flatnonzero(row) for row in ok]
+        return out
 
 
 def leaf_work(packed: PackedScene, kappa: float = 100.0) -> np.ndarray:
@@ -240,7 +318,7 @@ def leaf_work(packed: PackedScene, kappa: float = 100.0) -> np.ndarray:
     geo = _Geometry(packed, D, index_slack(packed, kappa), lookup_eps(extent), NEGLIGIBLE_NATS / kappa)
     lists = ix.lists()
     offs = np.array([[(o >> b) & 1 for b in range(3)] for o in range(8)], np.float64) - 0.5
-    out = []
+    out, boxes = [], []
     todo = []
     nx, ny, _ = ix.dims
     for c, v in enumerate(ix.cell_list.astype(np.int64)):
@@ -256,8 +334,11 @@ def leaf_work(packed: PackedScene, kappa: float = 100.0) -> np.ndarray:
         lst = lists[v].astype(np.int64)
         if len(lst) == 0:
             continue
-        _, acc = geo.listed(cen[None], half, lst)
-        out.append([v, depth, len(lst), int(geo.count[lst].sum()), int(acc.sum())])
+        out.append([v, depth, len(lst), int(geo.count[lst].sum()), 0])
+        boxes.append((cen[None], half, lst))
+    for k in range(0, len(boxes), 256):  # the leaves' expensive planes, many leaves per pass
+        for row, (_, acc) in zip(out[k:k + 256], geo.listed_many(boxes[k:k + 256])):
+            row[4] = int(acc.sum())
     return np.array(out, np.int64).reshape(-1, 5)
 
 
@@ -316,8 +397,9 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
     planes0 = listed.astype(np.int64) @ count
     acc0 = (accs * listed).sum(axis=1)
     nodes = []
-    for i in range(len(centres)):
-        lst = np.nonzero(listed[i])[0]
+    cols, ends = np.nonzero(listed)[1], np.cumsum(listed.sum(axis=1))
+    lsts = [cols[a:b] for a, b in zip((ends - listed.sum(axis=1)).tolist(), ends.tolist())]  # np.nonzero(row)
+    for i, lst in enumerate(lsts):
         nodes.append([centres[i], 0.5 * cell, 0, lst, None, int(acc0[i]), int(planes0[i]), lst.tobytes()])
     refs: dict[bytes, int] = {}
     for nd in nodes:
@@ -334,6 +416,11 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
     heapq.heapify(heap)
     n_inner = 0
     offs = np.array([[(o >> b) & 1 for b in range(3)] for o in range(8)], np.float64) - 0.5
+    # The children of the leaves at the top of the heap are listed ahead, several splits per numpy pass
+    # (a leaf's children depend on that leaf alone, so the index is the same); the batch doubles up to
+    # SPLIT_BATCH_MAX as splits go on, so a refinement that stops early computes at most as many unused.
+    ahead: dict[int, tuple] = {}
+    batch = min(4, SPLIT_BATCH_MAX)
     while heap:
         c0, i = heap[0]
         nd = nodes[i]
@@ -343,7 +430,15 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
             break  # the worst leaf cannot be split: the worst case stays
         half = nd[1] / 2
         kc = nd[0] + offs * nd[1]  # child centres (octant o: bit set = upper half)
-        sub, sub_acc = geo.listed(kc, half, nd[3])
+        if i not in ahead:
+            top = [heapq.heappop(heap) for _ in range(min(batch, len(heap)))]  # keys are unique: the heap's
+            for e in top:  # later pops do not depend on its internal order
+                heapq.heappush(heap, e)
+            todo = [j for _, j in top if j not in ahead and nodes[j][2] < max_depth]
+            res = geo.listed_many([(nodes[j][0] + offs * nodes[j][1], nodes[j][1] / 2, nodes[j][3]) for j in todo])
+            ahead.update(zip(todo, res))
+            batch = min(2 * batch, SPLIT_BATCH_MAX)
+        sub, sub_acc = ahead.pop(i)
         kids = [nd[3][sub[o]] for o in range(8)]
         kid_keys = [kl.tobytes() for kl in kids]
         kid_acc = (sub_acc * sub).sum(axis=1).tolist()
