@@ -224,6 +224,8 @@ class _Geometry:
         box_c += mstart[grp_c]
         UB = np.maximum.reduceat(UBp, seg)
         LB = np.maximum.reduceat(LBp, seg)
+        # the lead plane the kernel scans first is the one of the octant of p - c_k; over the box only
+        # the octants whose signs occur there are possible
         ck = cand[kc]
         cen, cc, hc = centres[box_c], self.c[ck], hs[grp_c][:, None]
         pos = (cen + hc) >= cc  # u_i >= 0 possible
@@ -244,16 +246,10 @@ class _Geometry:
             k += mi * Ji
         return out
 
-    def near(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """Polytopes whose ball bound (as in :meth:`listed`) over the box [lo, hi] (grown by eps) is below
-        D + slack: every other one is listed by no box inside it (its lower bound there is at least as
-        large, and its upper bound, at least its lower bound, cannot lower the threshold below D + slack)."""
-        return self.near_many(np.asarray(lo, np.float64)[None], np.asarray(hi, np.float64)[None])[0]
-
     def listed_grid(self, ijk: np.ndarray, centres: np.ndarray, half: float, block: int = 4):
         """:meth:`listed` of every top cell (integer cell ``ijk``, ``centres``, half side ``half``) against
         every polytope, as (m, n) arrays, the same values for the listed entries: blocks of ``block``^3 cells
-        are evaluated against the polytopes :meth:`near` the block only (the top level cost grew with
+        are evaluated against the polytopes :meth:`near_many` the block only (the top level cost grew with
         cells x half-planes: 75 of 112 s of the 150k-splat room's budget at 2.5 cm), many blocks per
         :meth:`listed_many` pass (about :data:`GRID_PAIRS_PER_PASS` (cell, half-plane) pairs each; one call per
         block cost more in numpy's per-call overhead than in arithmetic on small scenes)."""
@@ -291,8 +287,10 @@ class _Geometry:
         return listed, accs
 
     def near_many(self, lo: np.ndarray, hi: np.ndarray, chunk: int = 1 << 20) -> list[np.ndarray]:
-        """:meth:`near` of each box [lo[b], hi[b]] ((B, 3) arrays), the same values, computed for many
-        boxes at once (about ``chunk`` (box, polytope) pairs per pass)."""
+        """Per box [lo[b], hi[b]] ((B, 3) arrays, about ``chunk`` (box, polytope) pairs per pass): the polytopes
+        whose ball bound (as in :meth:`listed`) over the box (grown by eps) is below D + slack. Every other one
+        is listed by no box inside it (its lower bound there is at least as large, and its upper bound, at
+        least its lower bound, cannot lower the threshold below D + slack)."""
         cen, half = (lo + hi) / 2, (hi - lo) / 2 + self.eps
         step = max(1, chunk // max(1, len(self.c)))
         out = []
