@@ -295,6 +295,22 @@ static bool awayFrom(const float u[3], const float g[3])
     return dot > 0.0f && dot * dot >= 0.25f * (uu * gg);
 }
 
+/* The velocity flown under decision d (certified, not a brake or a landing) while the live setpoint asks for ud:
+ * the live request with the decision's correction (u - planned: zero for a pass, the candidate's deflection for a
+ * filtered decision), kept within POLYCC_SHIELD_PASS_TOL of the certified command u per component.  Continuous in
+ * ud: until 2026-12-06 a pass decision flew the live setpoint while it stayed within the tolerance and jumped back
+ * to the 10-20 ms older `planned` velocity when it left it (and a filtered decision flew its u for the whole
+ * period), so a source whose command changes by about the tolerance per period was flown as a back-and-forth
+ * between its live and its old command: jerk that neither the source nor the certificate asked for. */
+static void flownVelocity(const decision_t *d, const float ud[3], float w[3])
+{
+    int i;
+    for (i = 0; i < 3; ++i) {
+        w[i] = clampf(ud[i] + (d->u[i] - d->planned[i]), d->u[i] - POLYCC_SHIELD_PASS_TOL,
+                      d->u[i] + POLYCC_SHIELD_PASS_TOL);
+    }
+}
+
 static bool near3(const float a[3], const float b[3], float tol)
 {
     return fabsf(a[0] - b[0]) <= tol && fabsf(a[1] - b[1]) <= tol && fabsf(a[2] - b[2]) <= tol;
@@ -388,9 +404,10 @@ void polycc_controller_filter(setpoint_t *sp, const float pos[3], const float ve
         return;
     }
     if (d.pass && near3(ud, d.planned, POLYCC_SHIELD_PASS_TOL)) {
-        return;
+        return; /* the setpoint as sent (its own mode: a position setpoint stays one) */
     }
-    override(sp, d.pass ? d.planned : d.u);
+    flownVelocity(&d, ud, ub);
+    override(sp, ub);
 }
 
 /* ------------------------------------------------------------------ app side */
@@ -412,7 +429,7 @@ void polycc_controller_plan(uint32_t now)
     decision_t d;
     const float *uApp;
     float speed2, udxy2;
-    float uB[3];
+    float uB[3], uF[3];
     bool landNow;
     decision_t prev;
     uint32_t f;
@@ -484,8 +501,11 @@ void polycc_controller_plan(uint32_t now)
     if (d.valid && d.brake) { /* flown as the brake policy: its command at this estimate */
         polycc_shield_brake(uB, m.vel, brakeErr());
         uApp = uB;
+    } else if (d.valid && !d.land) { /* what the stabilizer flies under the current decision at this setpoint */
+        flownVelocity(&d, m.ud, uF);
+        uApp = uF;
     } else {
-        uApp = d.valid && !d.pass ? d.u : m.ud;
+        uApp = d.valid ? d.u : m.ud;
     }
     f = polycc_shield_run(&job, polycc_app_scene(), &jobPrm, m.pos, m.vel, m.acc, uApp, m.ud);
     trace.decisions += 1u;
