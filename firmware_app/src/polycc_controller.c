@@ -295,19 +295,18 @@ static bool awayFrom(const float u[3], const float g[3])
     return dot > 0.0f && dot * dot >= 0.25f * (uu * gg);
 }
 
-/* The velocity flown under decision d (certified, not a brake or a landing) while the live setpoint asks for ud:
- * the live request with the decision's correction (u - planned: zero for a pass, the candidate's deflection for a
- * filtered decision), kept within POLYCC_SHIELD_PASS_TOL of the certified command u per component.  Continuous in
- * ud: until 2026-12-06 a pass decision flew the live setpoint while it stayed within the tolerance and jumped back
- * to the 10-20 ms older `planned` velocity when it left it (and a filtered decision flew its u for the whole
- * period), so a source whose command changes by about the tolerance per period was flown as a back-and-forth
- * between its live and its old command: jerk that neither the source nor the certificate asked for. */
+/* The velocity flown under decision d (certified, not a brake or a landing) while the live setpoint asks for ud.
+ * A pass decision follows the live request, held within POLYCC_SHIELD_PASS_TOL of the velocity it certified (per
+ * component): continuous in ud.  Until 2026-12-06 it flew the live setpoint while that stayed within the tolerance
+ * and jumped back to the 10-20 ms older certified velocity when it left it, so a source whose command changes by
+ * about the tolerance per period was flown back and forth between its live and its old command (jerk that neither
+ * the source nor the certificate asked for).  The band is the one a passed setpoint always had.  A filtered
+ * decision flies exactly its certified command u: no band where the candidate deflects the source. */
 static void flownVelocity(const decision_t *d, const float ud[3], float w[3])
 {
     int i;
     for (i = 0; i < 3; ++i) {
-        w[i] = clampf(ud[i] + (d->u[i] - d->planned[i]), d->u[i] - POLYCC_SHIELD_PASS_TOL,
-                      d->u[i] + POLYCC_SHIELD_PASS_TOL);
+        w[i] = d->pass ? clampf(ud[i], d->u[i] - POLYCC_SHIELD_PASS_TOL, d->u[i] + POLYCC_SHIELD_PASS_TOL) : d->u[i];
     }
 }
 
