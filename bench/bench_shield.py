@@ -204,6 +204,7 @@ def _firmware_row(speed: float, mode: str, recs: list[tuple[int, dict]], cell, c
         "jerk_rms": float(np.sqrt(np.mean(jerk ** 2))), "jerk_p99": float(np.percentile(jerk, 99)),
         # per flight, pair by pair (paired_jerk compares the modes on the same pairs)
         "pair_ids": [k for k, _ in recs], "flight_jerk_rms": [r["jerk_rms"] for _, r in recs],
+        "flight_jerk_rms_flown": [_rms(j[HANDOVER_SAMPLES:]) for j in jerks],
         "flight_outcome": [r["outcome"] for _, r in recs],
         "time_to_goal_s": float(np.mean([r["time_s"] for r in ok])) if ok else nan,
         "decisions_per_flight": per("decisions"), "infeasible_per_flight": per("infeasible"),
@@ -228,23 +229,34 @@ OUTCOME_CLASSES = {  # the two flights of a pair by whether each reached its goa
 }
 
 
-def paired_jerk(rows: list[dict], base: str = "app", by_outcome: bool = False) -> list[dict]:
+HANDOVER_SAMPLES = 3  # the first 30 ms of a flight's 100 Hz jerk: the hand-over from the high-level commander
+
+
+def _rms(a) -> float:
+    a = np.asarray(a, np.float64)
+    return float(np.sqrt(np.mean(a ** 2))) if len(a) else float("nan")
+
+
+def paired_jerk(rows: list[dict], base: str = "app", by_outcome: bool = False,
+                key: str = "flight_jerk_rms") -> list[dict]:
     """Per speed and mode, the jerk RMS of each flight against ``base``'s flight of the same pair (firmware
     rows): median and geometric mean of the ratios, the pairs where the mode's flight is smoother, and the
     Wilcoxon signed-rank p-value (two-sided, on the log ratios). The pooled RMS of a cell is dominated by a
     few flights (a 25-pair cell's pooled figure moved by several m/s^3 between runs); the pairing removes the
     pair-to-pair spread of the paths, which both modes share. ``by_outcome``: one row per class of
     :data:`OUTCOME_CLASSES` as well (on 398 flights the 0.5 m/s excess was all in pairs where the shield's
-    source stalled: docs/barrier.md section 8)."""
+    source stalled: docs/barrier.md section 8). ``key``: the per-flight figure compared, ``flight_jerk_rms`` (the
+    whole flight) or ``flight_jerk_rms_flown`` (after the first 30 ms: the hand-over from the high-level commander,
+    the largest jerk of most flights in both modes, which hides what the flight in between does)."""
     from scipy.stats import wilcoxon
 
     out = []
-    fw = [r for r in rows if r["dynamics"] == "firmware" and r.get("flight_jerk_rms")]
+    fw = [r for r in rows if r["dynamics"] == "firmware" and r.get(key)]
     for r in fw:
         b = next((x for x in fw if x["speed"] == r["speed"] and x["mode"] == base), None)
         if r["mode"] == base or b is None:
             continue
-        bj, rj = dict(zip(b["pair_ids"], b["flight_jerk_rms"])), dict(zip(r["pair_ids"], r["flight_jerk_rms"]))
+        bj, rj = dict(zip(b["pair_ids"], b[key])), dict(zip(r["pair_ids"], r[key]))
         bo = dict(zip(b["pair_ids"], b.get("flight_outcome") or [None] * len(b["pair_ids"])))
         ro = dict(zip(r["pair_ids"], r.get("flight_outcome") or [None] * len(r["pair_ids"])))
         common = sorted(set(bj) & set(rj))
@@ -256,7 +268,8 @@ def paired_jerk(rows: list[dict], base: str = "app", by_outcome: bool = False) -
             ok = np.isfinite(a) & np.isfinite(o) & (a > 0) & (o > 0)
             lr = np.log(o[ok] / a[ok])
             p = float(wilcoxon(lr).pvalue) if len(lr) >= 6 and np.any(lr != 0) else float("nan")
-            out.append({"speed": r["speed"], "mode": r["mode"], "base": base, "outcomes": name, "pairs": int(ok.sum()),
+            out.append({"speed": r["speed"], "mode": r["mode"], "base": base, "figure": key, "outcomes": name,
+                        "pairs": int(ok.sum()),
                         "median_ratio": float(np.exp(np.median(lr))) if len(lr) else float("nan"),
                         "geomean_ratio": float(np.exp(np.mean(lr))) if len(lr) else float("nan"),
                         "smoother": int((lr < 0).sum()), "wilcoxon_p": p})
@@ -355,13 +368,17 @@ def firmware_main(args, header: Path, pairs, budget) -> int:
     print_table(f"Shield vs today's app on the REAL firmware (SITL) and the fast quadrotor, demo arena n={N_POLYS}, "
                 f"{len(held)} of {len(sub)} pairs per speed", HEAD, _table_rows(out))
     paired = paired_jerk(fw_rows, by_outcome=True)
-    if paired:
-        print_table("Jerk RMS per flight against today's app on the same pair (real firmware), all pairs and by "
-                    "which of the two flights reached its goal",
-                    ["v m/s", "mode", "pairs (outcomes)", "pairs", "median ratio", "geo. mean ratio", "smoother",
-                     "Wilcoxon p"],
-                    [[r["speed"], r["mode"], r["outcomes"], r["pairs"], r["median_ratio"], r["geomean_ratio"],
-                      f"{r['smoother']}/{r['pairs']}", r["wilcoxon_p"]] for r in paired])
+    flown = paired_jerk(fw_rows, key="flight_jerk_rms_flown")
+    for title, rows_ in (("Jerk RMS per flight against today's app on the same pair (real firmware), all pairs and by "
+                          "which of the two flights reached its goal", paired),
+                         ("The same after the first 30 ms of each flight (the hand-over from the high-level "
+                          "commander)", flown)):
+        if rows_:
+            print_table(title, ["v m/s", "mode", "pairs (outcomes)", "pairs", "median ratio", "geo. mean ratio",
+                                "smoother", "Wilcoxon p"],
+                        [[r["speed"], r["mode"], r["outcomes"], r["pairs"], r["median_ratio"], r["geomean_ratio"],
+                          f"{r['smoother']}/{r['pairs']}", r["wilcoxon_p"]] for r in rows_])
+    paired += flown
     write_json("shield_firmware", {"pairs": len(sub), "pairs_held": len(held), "budget": budget, "rows": out,
                                    "paired": paired, "partial": False, "wall_s": time.perf_counter() - t0})
     return 0

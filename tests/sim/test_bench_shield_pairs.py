@@ -55,3 +55,37 @@ def test_rows_without_outcomes_give_the_pooled_row_only(bench_shield):
         del r["flight_outcome"]
     out = bench_shield.paired_jerk(rows, by_outcome=True)
     assert [r["outcomes"] for r in out] == ["all"] and out[0]["smoother"] == 1
+
+
+def test_the_flown_figure_leaves_out_the_hand_over(bench_shield):
+    """A flight's jerk after its first 30 ms (the hand-over from the high-level commander, the largest jerk of most
+    flights in both modes) is compared pair by pair on its own: here the two modes differ only in the hand-over
+    (the shield's 4x smaller), and after it the shield is 1.5x rougher: the whole-flight figure says smoother,
+    the flown one rougher."""
+    import sys
+
+    sys.path.insert(0, str(Path(bench_shield.__file__).parent))
+    from flight_store import decode, encode
+
+    rng = np.random.default_rng(5)
+
+    def rec(first, rest_scale, k):
+        j = np.r_[np.full(3, first), rest_scale * rng.standard_normal(400)]
+        return k, {"jerk": encode(j), "gap": encode(np.zeros(0)), "jerk_rms": float(np.sqrt(np.mean(j ** 2))),
+                   "success": True, "shield": None, "collisions": 0, "min_clearance_m": 0.1, "time_s": 4.0,
+                   "outcome": "goal", "landed": True, "sitl_reruns": 0, "rtf": 0.8}
+
+    class Cell:
+        class path:
+            name = "cell.json"
+
+    app = [rec(200.0, 2.0, k) for k in range(10)]
+    sh = [rec(50.0, 3.0, k) for k in range(10)]
+    rows = [bench_shield._firmware_row(0.5, m, recs, Cell, "0" * 16, 0)
+            for m, recs in (("app", app), ("app_shield", sh))]
+    j0 = decode(app[0][1]["jerk"])
+    assert rows[0]["flight_jerk_rms_flown"][0] == pytest.approx(np.sqrt(np.mean(j0[3:] ** 2)))
+    whole = bench_shield.paired_jerk(rows)[0]
+    flown = bench_shield.paired_jerk(rows, key="flight_jerk_rms_flown")[0]
+    assert whole["figure"] == "flight_jerk_rms" and whole["median_ratio"] < 1 and whole["smoother"] == 10
+    assert flown["figure"] == "flight_jerk_rms_flown" and 1.3 < flown["median_ratio"] < 1.7 and flown["smoother"] == 0
