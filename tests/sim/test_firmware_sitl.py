@@ -180,6 +180,23 @@ def _connect(w):
 
 
 @pytest.mark.slow
+def test_a_connect_whose_first_request_the_firmware_loses_completes(arena):
+    """Regression: cflib's first request of a connect (link service SOURCE, port 15 channel 1) had no reply
+    pattern in the bridge's retransmission; lost in the firmware's RX queue, as on a loaded host, it was never
+    resent and cflib waited for ever (a README test hung 1200 s in CI). The bridge loses it on purpose here."""
+    from polycc.link.cflib_tools import close_without_stop, connect
+    from polycc.testing.worlds import FirmwareWorld
+
+    with FirmwareWorld(arena["dir"] / "polytopes.h", arena["start"], cf2=arena["build"],
+                       bridge_args=["--lose", "0xfd:1"]) as w:
+        scf = connect(w.uri, 60.0)  # no retry: the stall fails here with a one-line error after 60 s
+        close_without_stop(scf)
+        st = w.sitl.stats()
+    assert st["lost_on_purpose"] == 1
+    assert st["arq_recovered"] >= 1 and st["arq_gave_up"] == 0
+
+
+@pytest.mark.slow
 def test_motion_commander_and_sync_logger(arena, monkeypatch):
     from cflib.crazyflie.log import LogConfig
     from cflib.crazyflie.syncLogger import SyncLogger

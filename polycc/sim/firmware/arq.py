@@ -20,7 +20,16 @@ missing reply after 1 s means the request was lost.  Packets without a reply (se
 never resent.
 
 A reply is matched by the CRTP header without the link bits (``& 0xF3``) and the first
-``n`` payload bytes of the request, ``n`` from :data:`MATCH_BYTES`.
+``n`` payload bytes of the request, ``n`` from :data:`MATCH_BYTES` (0: the header alone).
+
+A retransmission waits in the bridge's FIFO for a slot; a reply that comes meanwhile answers the request,
+and the waiting copy is then not sent (:meth:`Arq.wanted`): sent, it would draw a second reply that nothing
+marks as a duplicate, and cflib would see the answer twice.
+
+Regression: the link service's SOURCE request (port 15, channel 1), the first packet of every cflib connect
+(``PlatformService._request_protocol_version``), was not in :data:`MATCH_BYTES`. Lost in the firmware's RX
+queue, it was never resent and cflib waited for ever: the connects that stalled "with no loss the ARQ saw"
+(a README test on a loaded CI host hung 1200 s in ``SyncCrazyflie.__enter__``).
 """
 
 from __future__ import annotations
@@ -40,6 +49,7 @@ MATCH_BYTES = {
     (5, 1): 2,   # log control: [cmd, block id] -> [cmd, block id, error]
     (8, 0): 3,   # high-level commander: reply = first 3 bytes + return code
     (13, 1): 1,  # platform version commands: [cmd] -> [cmd, ...]
+    (15, 1): 0,  # link service SOURCE: [0] -> b"Bitcraze Crazyflie" (cflib's first request of a connect)
 }
 
 LOG_CMD_APPEND_BLOCK = (2, 8)      # CMD_APPEND_BLOCK, CMD_APPEND_BLOCK_V2
@@ -100,6 +110,7 @@ class Arq:
         self.recovered = 0
         self.gave_up = 0
         self.duplicates_dropped = 0
+        self.cancelled = 0       # retransmissions not sent: the reply came while they waited
 
     def sent(self, data: bytes, now: float):
         key = request_key(data)
@@ -121,7 +132,7 @@ class Arq:
         if n is None:
             return True
         hdr = data[0] & 0xF3
-        for k in range(min(n, len(data) - 1), 0, -1):
+        for k in range(min(n, len(data) - 1), -1, -1):
             key = (hdr, bytes(data[1:1 + k]))
             e = self.open.pop(key, None)
             if e is not None:
@@ -136,6 +147,13 @@ class Arq:
                     return False
                 del self.recent[key]
         return True
+
+    def wanted(self, data: bytes) -> bool:
+        """Whether a retransmission of ``data`` that :meth:`due` returned is still to be sent: False once a
+        reply answered the request while the copy waited for its slot."""
+        key = request_key(data)
+        e = self.open.get(key) if key is not None else None
+        return e is not None and e.data == data
 
     def due(self, now: float) -> list[bytes]:
         out = []
@@ -153,4 +171,5 @@ class Arq:
     def stats(self) -> dict:
         return {"arq_retransmits": self.retransmits, "arq_recovered": self.recovered,
                 "arq_gave_up": self.gave_up, "arq_duplicates_dropped": self.duplicates_dropped,
+                "arq_cancelled": self.cancelled,
                 "arq_open": len(self.open)}

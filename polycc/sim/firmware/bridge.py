@@ -148,6 +148,7 @@ class BridgeConfig:
     tick_fd: int | None = None      # bridge clock: write end of cf2's tick pipe (sim.py sets it up)
     rtf_max: float = 1.0            # bridge clock: at most this many simulated seconds per second
     air: tuple | None = None        # (host, port) of the P2P air hub (polycc.sim.firmware.air), or None
+    lose: tuple | None = None       # tests: (CRTP header, count): lose that many such cflib packets into the firmware
 
 
 class Bridge:
@@ -169,7 +170,7 @@ class Bridge:
         self.cf_addr = None
         self.pwm = (0, 0, 0, 0)
         self.calibrated = False
-        self.pending = collections.deque()   # cflib -> firmware FIFO: (t_in, bytes)
+        self.pending = collections.deque()   # cflib -> firmware FIFO: (t_in, bytes, an ARQ retransmission)
         self.air_future: list = []            # P2P packets stamped ahead of this instance: (sim t s, bytes)
         self.sent_times = collections.deque()
         self.arq = Arq() if (cfg.arq and cfg.mode == "paced") else None
@@ -189,6 +190,7 @@ class Bridge:
         self.impacts_reported = 0
         self.tick_fd = cfg.tick_fd
         self.n_tick = 0
+        self.lose_left = 0 if cfg.lose is None else int(cfg.lose[1])
         if self.tick_fd is not None:
             os.set_blocking(self.tick_fd, False)
 
@@ -346,7 +348,7 @@ class Bridge:
         if self.cfg.mode == "naive":
             self._send_fw(data, now)
             return
-        self.pending.append((now, data))
+        self.pending.append((now, data, False))
 
     def _release_air(self, now: float) -> None:
         """Held P2P packets whose stamp this instance's simulated time has reached (in stamp order)."""
@@ -378,7 +380,7 @@ class Bridge:
         if self.cfg.mode == "naive" and self.fw_addr is not None:
             self._send_fw(data, now)
             return
-        self.pending.append((now, data))
+        self.pending.append((now, data, False))
 
     def _next_extra(self, now: float, pose_due: bool):
         """The non-IMU packet for this slot: a cflib packet when it can be near the head of the
@@ -394,7 +396,19 @@ class Bridge:
         return None
 
     def _send_cflib(self, now: float):
-        t_in, data = self.pending[0]
+        t_in, data, retx = self.pending[0]
+        if retx and not self.arq.wanted(data):  # answered while it waited (polycc.sim.firmware.arq)
+            self.pending.popleft()
+            self.arq.cancelled += 1
+            return
+        if self.lose_left > 0 and (data[0] & 0xF3) == (self.cfg.lose[0] & 0xF3):
+            # tests: lost as the firmware's full RX queue loses a packet (gone after the bridge sent it)
+            self.lose_left -= 1
+            self.stats["lost_on_purpose"] += 1
+            self.pending.popleft()
+            if self.arq is not None:
+                self.arq.sent(data, self._arq_clock(now))
+            return
         if self._send_fw(data, now):
             self.pending.popleft()
             self.max_hold_s = max(self.max_hold_s, now - t_in)
@@ -626,7 +640,7 @@ class Bridge:
         """At most `slot_extra` non-IMU packets per IMU slot."""
         if self.arq is not None:
             for data in self.arq.due(self._arq_clock(now)):
-                self.pending.appendleft((now, data))
+                self.pending.appendleft((now, data, True))
         while self.extra_budget > 0:
             kind = self._next_extra(now, self.pose_due)
             if kind is None:
@@ -664,6 +678,14 @@ def _hostport(s: str):
     return host or "127.0.0.1", int(port)
 
 
+def _header_count(s: str):
+    hdr, _, n = s.partition(":")
+    try:
+        return int(hdr, 0) & 0xFF, int(n or "1")
+    except ValueError:
+        raise argparse.ArgumentTypeError("expected HEADER:N, e.g. 0xfd:1") from None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="CrazySim SITL physics + CRTP relay")
     ap.add_argument("--fw-port", type=int, default=19950, help="0: any free port (reported on stdout)")
@@ -684,13 +706,16 @@ def main(argv=None) -> int:
     ap.add_argument("--tick-fd", type=int, help="bridge clock: write end of cf2's tick pipe (polycc.sim.firmware.sitl)")
     ap.add_argument("--rtf-max", type=float, default=1.0, help="bridge clock: max real-time factor")
     ap.add_argument("--air", type=_hostport, help="HOST:PORT of the P2P air hub (polycc.sim.firmware.air)")
+    ap.add_argument("--lose", type=_header_count, metavar="HEADER:N",
+                    help="tests: lose the first N cflib packets with this CRTP header (e.g. 0xfd:1) on their way "
+                         "into the firmware, as its full RX queue would")
     a = ap.parse_args(argv)
     cfg = BridgeConfig(fw_port=a.fw_port, cflib_port=a.cflib_port, cflib_host=a.cflib_host, start=a.start,
                        start_yaw=a.yaw,
                        pose_hz=a.pose_hz, trajectory_csv=a.trajectory, mode=a.mode, slot_extra=a.slot_extra,
                        hold_s=a.hold_ms / 1e3, hold_until_calibrated=not a.no_hold, arq=not a.no_arq,
                        handshake_timeout_s=a.handshake_timeout, stats_period_s=a.stats_period,
-                       trace_path=a.trace, tick_fd=a.tick_fd, rtf_max=a.rtf_max, air=a.air)
+                       trace_path=a.trace, tick_fd=a.tick_fd, rtf_max=a.rtf_max, air=a.air, lose=a.lose)
     b = Bridge(cfg)
 
     def stop(signum, frame):

@@ -137,8 +137,8 @@ class FirmwareSimulator:
             try:
                 scf = connect(sitl.uri, self.connect_timeout_s, self.toc_cache)
             except PolyccError as exc:
-                # a connect that stalls with no packet loss the ARQ saw was seen twice in ~40 connects on a
-                # heavily loaded host; a fresh cflib session connected each time (reported, not hidden)
+                # seen twice in ~40 connects on a heavily loaded host, before the ARQ covered cflib's first
+                # request (polycc.sim.firmware.arq); a fresh cflib session connected each time (reported)
                 self.say(f"{exc}; retrying once with a fresh cflib session")
                 scf = connect(sitl.uri, self.connect_timeout_s, None)
             try:
