@@ -278,7 +278,7 @@ def test_bridge_air_is_causal_in_simulated_time():
             return AIR_STAMP + struct.pack("<d", t) + port_hdr + rec
 
         def ages():
-            return [struct.unpack(NBR_FORMAT, d[2:])[5] if len(d) == 20 else None for _, d in b.pending]
+            return [struct.unpack(NBR_FORMAT, d[2:])[5] if len(d) == 20 else None for _, d, _retx in b.pending]
 
         b._handle_air(stamped(4.9, pack_neighbour(1, [1, 2, 3], 20, 0.1)), 0.0)  # 100 ms behind
         assert ages() == [120]
