@@ -52,6 +52,7 @@ Writes bench/results/shield.json (fast) and bench/results/shield_firmware.json (
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -61,7 +62,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from common import print_table, write_json  # noqa: E402
+from common import CACHE, print_table, write_json  # noqa: E402
+
+RUNS = CACHE / "shield_firmware_runs"  # runs of flights that did not land
 
 RADIUS = 0.1
 N_POLYS = 150
@@ -165,7 +168,16 @@ def fly_firmware_cells(tree, header: Path, pairs, speeds, say=print, modes=("app
         b = braked[mode]
         if b not in sims:
             sims[b] = FirmwareSimulator(header, tree, ref.packed, ref.kappa, ell, build=builds[b])
+        # each flight's cf2.log, bridge.err and 100 Hz truth are kept only if it did not land (one in ~165 did
+        # not, and replays of it landed: the next one can be examined)
+        runs = RUNS / f"{mode}_{speed:g}ms_pair{k}"
+        shutil.rmtree(runs, ignore_errors=True)
+        sims[b].run_root = runs
         t = sims[b].fly(s0, g, cfgs[speed, mode])
+        if t.extra.get("landed", True):
+            shutil.rmtree(runs, ignore_errors=True)
+        else:
+            say(f"firmware {mode} {speed:g} m/s pair {k + 1} did not land within the wait: its run is kept in {runs}")
         cells[speed, mode].put(k, _flight_record(t, s0, g))
         flown[speed, mode] = flown.get((speed, mode), 0) + 1
         say(f"firmware {mode} {speed:g} m/s pair {k + 1}/{len(pairs)} ({i + 1}/{len(todo)}): {t.outcome}, "
