@@ -127,7 +127,7 @@ static void fillParams(polycc_shield_params_t *q)
     q->psi_cap = pPsiCap;
     q->a_brake = POLYCC_SHIELD_A_BRAKE;
     q->n_lat = POLYCC_SHIELD_N_LAT;
-    q->n_commit = 1u;
+    q->n_commit = POLYCC_SHIELD_N_COMMIT;
     q->n_steps = POLYCC_SHIELD_MAX_STEPS;
     q->max_evals = polycc_controller_max_evals();
 }
@@ -524,7 +524,7 @@ void polycc_controller_plan(uint32_t now)
     memset(&d, 0, sizeof d);
     d.valid = true;
     d.from = m.tick + POLYCC_SHIELD_PERIOD_TICKS;
-    d.to = m.tick + 2u * POLYCC_SHIELD_PERIOD_TICKS;
+    d.to = m.tick + (1u + POLYCC_SHIELD_N_COMMIT) * POLYCC_SHIELD_PERIOD_TICKS; /* certified to there */
     memcpy(d.planned, m.ud, sizeof d.planned);
     /* A landing starts when the shield would not pass the setpoint unchanged, and once started goes on while the
      * setpoint descends, passable or not: passing would chase the setpoint's x, y (a high-level land starts

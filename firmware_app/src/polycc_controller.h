@@ -14,8 +14,9 @@
  *     polycc_shield_run() with as many psi evaluations as the scene's certified worst case fits in
  *     POLYCC_SHIELD_CPU_SHARE_PERCENT of the period.  The app task is preemptible, so a plan never
  *     delays the 1 kHz loop.
- * A decision planned from the estimate of tick t0 is flown from t0 + 10 to t0 + 20 (the model's
- * latency and commit, n_lat = 3, n_commit = 1 steps of 10 ms): certified -> the candidate (the
+ * A decision planned from the estimate of tick t0 is flown from t0 + 10 to t0 + 30 (the model's
+ * latency and commit, n_lat = 3, n_commit = 2 steps of 10 ms; its successor normally replaces it at
+ * t0 + 20, so one late app tick is flown on its own certificate): certified -> the candidate (the
  * setpoint passes unchanged when the candidate is the desired velocity), otherwise the backup,
  * the brake policy (polycc_shield_brake, recomputed every tick from the live velocity estimate);
  * a decision not replaced in time is flown on until its successor is due if that successor is planned and
@@ -75,6 +76,12 @@
 #define POLYCC_SHIELD_A_BRAKE 3.0f  /* m/s^2: the brake's deceleration as the model assumes it (< A_XY: the
                                      * velocity loop's integrator and the estimate's delay weaken it) */
 #define POLYCC_SHIELD_N_LAT 3u      /* model steps: 20 ms estimator delay + the 10 ms until flown */
+/* Model steps a decision's candidate is certified for before the brake: two periods, so a decision whose
+ * successor comes up to one period late is flown on its own certificate instead of expiring into the brake
+ * (docs/barrier.md section 8, "Rate and slot").  With 1, every app tick more than a period late was a brake
+ * pulse: 17.6 expired ticks per 0.5 m/s flight in the real-firmware SITL, each a 2-3 m/s^2 step of the
+ * vertical acceleration (the brake's u_z = 0 against the app's descent). */
+#define POLYCC_SHIELD_N_COMMIT 2u
 /* Under the backup, below this speed (m/s) the brake becomes a position hold where it got that slow:
  * a velocity setpoint of 0 leaves the velocity loop's integrator to creep the vehicle on. */
 #define POLYCC_SHIELD_HOLD_SPEED 0.1f
