@@ -59,7 +59,7 @@ class ShieldParams:
     a_brake: float = 3.0  # the brake's deceleration as modelled, m/s^2 (<= a_xy; it is commanded at a_xy)
     psi_cap: float = 0.0  # clearance cap D, m (0: off): psi <- min(psi, D), gradient 0 where capped
     n_lat: int = 3  # 20 ms estimator delay + the 10 ms until the decision is flown
-    n_commit: int = 1
+    n_commit: int = 2  # two periods: a decision whose successor is up to a period late flies on its own certificate
     n_steps: int = 200
     max_evals: int = 10
 
