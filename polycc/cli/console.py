@@ -88,7 +88,7 @@ STAGE_TEXT = {
     "read": "reading the scene", "voxelize": "voxelizing", "triangles": "voxelizing the mesh triangles",
     "floaters": "floater filter: what it leaves uncovered",
     "cover": "cover: clusters, set cover, merging", "budget": "budget: reduce, quantize, measure candidates",
-    "drop costs": "budget: the volume each half-plane's drop adds (qhull, every polytope)",
+    "drop costs": "budget: the volume each half-plane's drop adds (every polytope)",
     "pops": "budget: the reduction's next drops, every polytope",
     "write": "writing polytopes.h, manifest.json, report.png",
     "certificate": "(a) certificate, every level", "levels": "(a)(b)(c) direct checks",

@@ -246,6 +246,162 @@ def _dual_volume_sorted(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray
     return float((area * height).sum() / 3.0)
 
 
+TRIPLE_PLANES_MAX = 64  # drop_volumes enumerates plane triples up to this many planes, qhull per plane above
+_TRIPLES: dict = {}
+# directions whose closest normals pre-screen the triples of _cap_volumes (the cube's 6 faces and 8 corners)
+_PROBE = np.concatenate([np.eye(3), -np.eye(3),
+                         np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) / np.sqrt(3.0)])
+
+
+def _triples(m: int) -> np.ndarray:
+    """(C(m, 3), 3) int64: every triple i < j < k of range(m), lexicographic (cached per m)."""
+    t = _TRIPLES.get(m)
+    if t is None:
+        i, j, k = np.meshgrid(np.arange(m), np.arange(m), np.arange(m), indexing="ij")
+        sel = (i < j) & (j < k)
+        t = _TRIPLES[m] = np.column_stack([i[sel], j[sel], k[sel]]).astype(np.int64)
+    return t
+
+
+def bounded_without(normals: np.ndarray, min_gamma: float = 1e-9) -> np.ndarray:
+    """(m,) bool: ``is_bounded(normals without row j, min_gamma)`` for every j.
+
+    Most rows are certified at once: a subset S of the normals that is bounded with twice the margin stays
+    bounded in every superset (the hull of a superset contains the hull of S, so the origin lies at least as
+    deep), so every j outside S is True. S is the normal closest to each of the six axis directions; a second
+    such S' from the other rows certifies the rows of S the same way. Rows left uncertified get the exact
+    :func:`is_bounded` of the other rows."""
+    n = np.asarray(normals, np.float64)
+    m = len(n)
+    out = np.zeros(m, bool)
+    if m <= MIN_PLANES:
+        return out
+    u = n / _norms(n)
+    axes = np.concatenate([np.eye(3), -np.eye(3)])
+    free = np.ones(m, bool)
+    certs = []
+    for _ in range(2):
+        if free.sum() < MIN_PLANES:
+            break
+        score = np.where(free[None, :], axes @ u.T, -np.inf)
+        s = np.unique(score.argmax(axis=1))
+        if len(s) < MIN_PLANES or not is_bounded(n[s], GAMMA_SAFETY * min_gamma):
+            break
+        certs.append(s)
+        free[s] = False
+    if not certs:
+        return np.array([is_bounded(np.delete(n, j, axis=0), min_gamma) for j in range(m)])
+    out[:] = True
+    left = certs[0] if len(certs) == 1 else np.zeros(0, np.int64)  # rows of S no S' certifies
+    for j in left:
+        out[j] = is_bounded(np.delete(n, j, axis=0), min_gamma)
+    return out
+
+
+def drop_volumes(h: np.ndarray, min_gamma: float = 1e-9, interior: np.ndarray | None = None,
+                 volume: float | None = None) -> np.ndarray:
+    """(m,) volume (m^3) that dropping each half-plane adds to the bounded polytope ``{n . p <= d}``, inf
+    where the other planes are not bounded with margin ``min_gamma`` (:func:`bounded_without`).
+
+    Up to :data:`TRIPLE_PLANES_MAX` planes, every plane at once from one enumeration of plane triples
+    (numpy, no qhull): a triple's point that violates no plane is a vertex of P, one that violates only plane
+    j a vertex of the cap ``C_j`` = (P without j) minus P beyond plane j. The cap's vertices are those and P's
+    vertices on plane j; its volume is the sum over its faces on the other planes of area x height / 3 from
+    an apex on plane j (the mean of P's vertices there), each face's area by the shoelace formula around its
+    mean. Above that many planes (the enumeration grows as m^4), one qhull half-space intersection per plane
+    (:func:`polytope_vertices_volume` from ``interior``, less ``volume``). Degenerate vertices (more than
+    three planes, or the outward margin's slivers) repeat points within the tolerance: repeated points add
+    nothing to a shoelace sum."""
+    h = np.asarray(h, np.float64)
+    m = len(h)
+    ok = bounded_without(h[:, :3], min_gamma)
+    out = np.full(m, np.inf)
+    if not ok.any():
+        return out
+    if m > TRIPLE_PLANES_MAX:
+        c = np.asarray(interior if interior is not None else chebyshev_centre(h)[0], np.float64)
+        vol = float(volume) if volume is not None else polytope_volume(polytope_vertices(h, c, min_gamma))
+        for j in np.flatnonzero(ok):
+            r = polytope_vertices_volume(np.concatenate((h[:j], h[j + 1:])), c, min_gamma)
+            out[j] = np.inf if r is None else max(r[1] - vol, 0.0)
+        return out
+    out[ok] = _cap_volumes(h)[ok]
+    return out
+
+
+def _cap_volumes(h: np.ndarray) -> np.ndarray:
+    """Volume of each cap C_j of :func:`drop_volumes` by triple enumeration (no boundedness check)."""
+    m = len(h)
+    nn = _norms(h[:, :3])[:, 0]
+    n = h[:, :3] / nn[:, None]
+    d = h[:, 3] / nn
+    t = _triples(m)
+    a, b, c = n[t[:, 0]], n[t[:, 1]], n[t[:, 2]]
+    bc, ca, ab = _cross(b, c), _cross(c, a), _cross(a, b)
+    det = np.einsum("ij,ij->i", a, bc)
+    good = np.abs(det) > 1e-12
+    t, det, bc, ca, ab = t[good], det[good], bc[good], ca[good], ab[good]
+    p = (d[t[:, 0], None] * bc + d[t[:, 1], None] * ca + d[t[:, 2], None] * ab) / det[:, None]
+    tol = 1e-9 * max(1.0, float(np.abs(d).max()))
+    # most triples' points lie beyond several planes: a few planes reject them before the full test
+    probe = _PROBE @ n.T
+    few = np.unique(probe.argmax(axis=1))
+    maybe = np.count_nonzero(p @ n[few].T - d[few] > tol, axis=1) <= 1
+    p = p[maybe]
+    s = p @ n.T - d  # (T', m) signed distances
+    viol = s > tol
+    nv = np.count_nonzero(viol, axis=1)
+    keep = nv <= 1
+    p, s, viol, nv = p[keep], s[keep], viol[keep], nv[keep]
+    on = np.abs(s) <= tol
+    vj = np.where(nv == 1, viol.argmax(axis=1), -1)
+    out = np.zeros(m)
+    new = np.flatnonzero(vj >= 0)
+    if not len(new):
+        return out
+    base = np.flatnonzero(vj < 0)
+    kb, jb = np.nonzero(on[base])  # P's vertex base[kb] lies on plane jb: in the base of C_jb
+    kb = base[kb]
+    cnt = np.bincount(jb, minlength=m)
+    apex = np.stack([np.bincount(jb, weights=p[kb, ax], minlength=m) for ax in range(3)], axis=1)
+    apex /= np.maximum(cnt, 1)[:, None]
+    kn, ln = np.nonzero(on[new])  # cap vertex new[kn] (beyond its plane vj) on face ln
+    kn = new[kn]
+    rb = np.count_nonzero(on[kb], axis=1)
+    kb2, jb2 = np.repeat(kb, rb), np.repeat(jb, rb)
+    lb2 = np.nonzero(on[kb])[1]
+    side = lb2 != jb2  # a base vertex on face l of C_j (l != j)
+    J = np.concatenate([vj[kn], jb2[side]])
+    L = np.concatenate([ln, lb2[side]])
+    K = np.concatenate([kn, kb2[side]])
+    key = J * m + L
+    uk, inv = np.unique(key, return_inverse=True)
+    fcnt = np.bincount(inv, minlength=len(uk))
+    g = np.stack([np.bincount(inv, weights=p[K, ax], minlength=len(uk)) for ax in range(3)], axis=1)
+    g /= fcnt[:, None]
+    nl = n[L]
+    helper = np.where(np.abs(nl[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    e1 = _cross(nl, helper)
+    e1 /= _norms(e1)
+    e2 = _cross(nl, e1)
+    r = p[K] - g[inv]
+    x = np.einsum("ij,ij->i", r, e1)
+    y = np.einsum("ij,ij->i", r, e2)
+    order = np.lexsort((np.arctan2(y, x), inv))
+    f, x, y = inv[order], x[order], y[order]
+    start = np.concatenate([[0], np.flatnonzero(np.diff(f)) + 1])
+    nxt = np.arange(1, len(f) + 1)
+    nxt[np.concatenate([start[1:], [len(f)]]) - 1] = start
+    area = np.abs(np.bincount(f, weights=x * y[nxt] - x[nxt] * y, minlength=len(uk))) * 0.5
+    fj, fl = np.divmod(uk, m)
+    height = np.maximum(d[fl] - np.einsum("ij,ij->i", n[fl], apex[fj]), 0.0)
+    vol = np.bincount(fj, weights=area * height / 3.0, minlength=m)
+    has = np.zeros(m, bool)
+    has[vj[new]] = True
+    out[has] = vol[has]
+    return out
+
+
 def polytope_volume(vertices: np.ndarray) -> float:
     """Volume of the convex hull of ``vertices`` (0 if flat), m^3."""
     try:

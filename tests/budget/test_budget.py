@@ -226,7 +226,7 @@ def _one_heap_greedy(polytopes, max_planes, per_polytope=None):
     every polytope, no cache): the oracle of the test below."""
     import heapq
 
-    from polycc.budget.reduce import MIN_PLANES, drop_cost
+    from polycc.budget.reduce import MIN_PLANES, all_drop_costs, drop_cost
     from polycc.geometry.halfplanes import polytope_volume
 
     cap = per_polytope if per_polytope is not None else 1 << 30
@@ -240,7 +240,7 @@ def _one_heap_greedy(polytopes, max_planes, per_polytope=None):
     volume = [polytope_volume(np.asarray(v, np.float64)) for _, v in polytopes]
     version = [0] * len(planes)
     added = [0.0]
-    costs = lambda k: [drop_cost(planes[k], j, interior[k], volume[k]) for j in range(len(planes[k]))]  # noqa: E731
+    costs = lambda k: all_drop_costs(planes[k], interior[k], volume[k])  # noqa: E731 (every plane at once)
 
     def entries(ks):
         heap = [(c, k, int(ids[k][j]), version[k]) for k in ks if len(planes[k]) > MIN_PLANES
