@@ -221,29 +221,36 @@ def _dual_volume_sorted(facets, v: np.ndarray, c: np.ndarray, planes: np.ndarray
     i = np.repeat(np.arange(len(facets)), sizes)  # incidence (vertex i lies on plane p)
     n_planes = len(planes)
     w = v - c
-    cnt = np.bincount(p, minlength=n_planes).astype(np.float64)
-    if np.count_nonzero(cnt >= 3) < MIN_PLANES:
+    if np.count_nonzero(np.bincount(p, minlength=n_planes) >= 3) < MIN_PLANES:
         return None
-    g = np.bincount((p[:, None] * 3 + _AXES).ravel(), weights=w[i].ravel(),
-                    minlength=3 * n_planes).reshape(n_planes, 3)
-    g /= np.maximum(cnt, 1.0)[:, None]  # face means, relative to c
     n = planes[:, :3] / _norms(planes[:, :3])
+    area, g = _face_areas(w[i], p, n, n_planes)  # face means relative to c
+    height = np.einsum("ij,ij->i", g, n)  # distance of each face's plane from c (g lies on the face)
+    return float((area * height).sum() / 3.0)
+
+
+def _face_areas(pts: np.ndarray, face: np.ndarray, n: np.ndarray, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """(area, mean) of each convex face polygon: ``pts`` (K, 3) its vertices in any order (repeats add nothing),
+    ``face`` (K,) the face each lies on, ``n`` (n_faces, 3) the faces' unit normals. Each face's vertices are
+    put in angular order around their mean in the face's plane and summed by the shoelace formula."""
+    cnt = np.bincount(face, minlength=n_faces).astype(np.float64)
+    g = np.bincount((face[:, None] * 3 + _AXES).ravel(), weights=pts.ravel(),
+                    minlength=3 * n_faces).reshape(n_faces, 3)
+    g /= np.maximum(cnt, 1.0)[:, None]
     helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
     e1 = _cross(n, np.broadcast_to(helper, n.shape))
     e1 /= _norms(e1)
     e2 = _cross(n, e1)
-    r = w[i] - g[p]
-    x = np.einsum("ij,ij->i", r, e1[p])
-    y = np.einsum("ij,ij->i", r, e2[p])
-    order = np.lexsort((np.arctan2(y, x), p))  # each face's vertices in angular order around its mean
-    p, x, y = p[order], x[order], y[order]
+    r = pts - g[face]
+    x = np.einsum("ij,ij->i", r, e1[face])
+    y = np.einsum("ij,ij->i", r, e2[face])
+    order = np.lexsort((np.arctan2(y, x), face))  # each face's vertices in angular order around its mean
+    p, x, y = face[order], x[order], y[order]
     start = np.concatenate([[0], np.flatnonzero(np.diff(p)) + 1])
     nxt = np.arange(1, len(p) + 1)
     nxt[np.concatenate([start[1:], [len(p)]]) - 1] = start  # the last vertex of a face is followed by its first
     cross = x * y[nxt] - x[nxt] * y
-    area = np.bincount(p, weights=cross, minlength=n_planes) * 0.5
-    height = np.einsum("ij,ij->i", g, n)  # distance of each face's plane from c (g lies on the face)
-    return float((area * height).sum() / 3.0)
+    return np.bincount(p, weights=cross, minlength=n_faces) * 0.5, g
 
 
 TRIPLE_PLANES_MAX = 64  # drop_volumes enumerates plane triples up to this many planes, qhull per plane above
@@ -374,26 +381,9 @@ def _cap_volumes(h: np.ndarray) -> np.ndarray:
     J = np.concatenate([vj[kn], jb2[side]])
     L = np.concatenate([ln, lb2[side]])
     K = np.concatenate([kn, kb2[side]])
-    key = J * m + L
-    uk, inv = np.unique(key, return_inverse=True)
-    fcnt = np.bincount(inv, minlength=len(uk))
-    g = np.stack([np.bincount(inv, weights=p[K, ax], minlength=len(uk)) for ax in range(3)], axis=1)
-    g /= fcnt[:, None]
-    nl = n[L]
-    helper = np.where(np.abs(nl[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
-    e1 = _cross(nl, helper)
-    e1 /= _norms(e1)
-    e2 = _cross(nl, e1)
-    r = p[K] - g[inv]
-    x = np.einsum("ij,ij->i", r, e1)
-    y = np.einsum("ij,ij->i", r, e2)
-    order = np.lexsort((np.arctan2(y, x), inv))
-    f, x, y = inv[order], x[order], y[order]
-    start = np.concatenate([[0], np.flatnonzero(np.diff(f)) + 1])
-    nxt = np.arange(1, len(f) + 1)
-    nxt[np.concatenate([start[1:], [len(f)]]) - 1] = start
-    area = np.abs(np.bincount(f, weights=x * y[nxt] - x[nxt] * y, minlength=len(uk))) * 0.5
+    uk, inv = np.unique(J * m + L, return_inverse=True)  # the faces (j, l): cap C_j's face on plane l
     fj, fl = np.divmod(uk, m)
+    area = np.abs(_face_areas(p[K], inv, n[fl], len(uk))[0])
     height = np.maximum(d[fl] - np.einsum("ij,ij->i", n[fl], apex[fj]), 0.0)
     vol = np.bincount(fj, weights=area * height / 3.0, minlength=m)
     has = np.zeros(m, bool)
