@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from polycc.geometry.halfplanes import (
@@ -36,9 +36,16 @@ def _check(h: np.ndarray, c: np.ndarray, min_gamma: float = 1e-4) -> np.ndarray:
     want = _per_plane(h, c, min_gamma)
     assert np.array_equal(np.isfinite(got), np.isfinite(want))
     fin = np.isfinite(want)
-    vol = polytope_vertices_volume(h, c, min_gamma)[1]
+    verts, vol = polytope_vertices_volume(h, c, min_gamma)
+    ext = verts.max(axis=0) - verts.min(axis=0)
+    skin = 2.0 * (ext[0] * ext[1] + ext[1] * ext[2] + ext[0] * ext[2])  # m^2, at least the surface
     assert np.all(got[fin] >= 0.0)
-    assert got[fin] == pytest.approx(want[fin], abs=1e-8 * vol + 1e-12)
+    # the enumeration counts a point within 1e-9 m (times the largest offset, if above 1 m) of a plane as on it,
+    # so the two may differ by a skin of that order over a cap's surface (the outward margin's slivers are 1e-9 m
+    # thick): twice that over the box's surface bounds it (seed 32252, k = 3 below: 2.1e-11 m^3 on a 1.4e-3 m^3
+    # polytope, where the box's skin allows 1.3e-10)
+    thick = 2e-9 * max(1.0, float(np.abs(h[:, 3]).max()))
+    assert got[fin] == pytest.approx(want[fin], abs=1e-8 * vol + thick * skin)
     return got
 
 
@@ -67,6 +74,7 @@ def test_random_hulls(seed, n, flat, redundant, drop):
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), k=st.integers(3, 40))
+@example(seed=32252, k=3)  # CI: the caps differed by 2.1e-11 m^3, beyond the first tolerance of 1.4e-11
 def test_lattice_polytopes_with_the_outward_margin(seed, k):
     """Hulls of voxel clusters in world units (integer normals, many vertices on four or more planes, every
     offset pushed out by the margin into slivers), as the cover hands them to the budget."""
