@@ -13,7 +13,7 @@ import heapq
 
 import numpy as np
 
-from polycc.geometry.halfplanes import MIN_PLANES, drop_volumes, polytope_vertices_volume, polytope_volume
+from polycc.geometry.halfplanes import MIN_PLANES, drop_volume, drop_volumes, polytope_volume
 
 # A polytope counts as bounded only if the origin lies at least this far inside the convex
 # hull of its unit normals (gamma = min_{|u|=1} max_l n_l . u >= this), which also rules out
@@ -22,9 +22,9 @@ MIN_GAMMA = 1e-4
 
 
 def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -> float:
-    """Volume added by dropping plane j (inf if the rest is unbounded)."""
-    r = polytope_vertices_volume(_without(planes, j), interior, MIN_GAMMA)
-    return np.inf if r is None else max(r[1] - volume, 0.0)
+    """Volume added by dropping plane j (inf if the rest is unbounded): one qhull
+    (:func:`polycc.geometry.halfplanes.drop_volume`)."""
+    return drop_volume(planes, j, interior, volume, MIN_GAMMA)
 
 
 def _without(a: np.ndarray, j: int) -> np.ndarray:
