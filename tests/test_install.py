@@ -54,6 +54,9 @@ def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     assert "URI: udp://" in run("sim-device", "b", "--udp", "127.0.0.1:0", "--duration", "0.5")
     assert "step 1: copy firmware_app/" in run("flash", "b", "--crazyflie-base", str(tmp_path), "--dry-run", ok=(0, 2))
     assert (tmp_path / "cache" / "cffi").is_dir()  # builds went to the user cache
+    # the cover's counts and the budget's drop volumes ran in C from the wheel's polycc/native/, not the numpy fallback
+    built = sorted(p.name for p in (tmp_path / "cache" / "cffi").iterdir())
+    assert any(b.startswith("_polycc_native_") for b in built), built
     # the real-firmware SITL's C support files ship in the wheel
     subprocess.run([str(py), "-c", "from polycc.sim.firmware.build import CLOCK_SHIM_SOURCE as a, FIXES_SOURCE as b; "
                     "assert a.is_file() and b.is_file(), (a, b)"], cwd=work, env=env, check=True)

@@ -19,6 +19,7 @@ RANK = {
     "geometry": 1, "link": 1, "report": 1, "verify": 1, "resources": 1, "parallel": 1,
     "firmware_trees": 2,  # firmware tarball/tree extraction and validation, shared by sim.firmware and ground.flash
     "scene": 2, "cbuild": 2,
+    "native": 2.5,  # host-only C geometry kernels (cffi): the cover's and the budget's hot loops
     "occupancy": 3, "demo": 3,
     "cover": 4, "onboard": 4,
     "budget": 5,

@@ -3,8 +3,10 @@
 Removing a half-plane from {p : n_l . p <= d_l} can only enlarge the polytope, so every
 occupied voxel it contained stays inside. A plane is only dropped if the remaining ones
 still bound a finite polytope (:func:`polycc.geometry.halfplanes.is_bounded` with a margin
-:data:`MIN_GAMMA`). Volumes come from qhull (scipy.spatial): the half-space intersection of the reduced
-polytope and its triangulated dual (:func:`polycc.geometry.halfplanes.polytope_vertices_volume`).
+:data:`MIN_GAMMA`). Volumes (m^3) of polytopes up to 64 planes come from one enumeration of plane triples
+for every plane at once (:func:`polycc.native.cap_volumes`, C; the numpy reference is
+:func:`polycc.geometry.halfplanes.drop_volumes`), larger ones from a qhull half-space intersection per
+plane (:func:`polycc.geometry.halfplanes.drop_volume`).
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ import heapq
 
 import numpy as np
 
-from polycc.geometry.halfplanes import MIN_PLANES, drop_volume, drop_volumes, polytope_volume
+from polycc.geometry.halfplanes import MIN_PLANES, drop_volume, polytope_volume
+from polycc.native import MAX_PLANES, cap_volumes
 
 # A polytope counts as bounded only if the origin lies at least this far inside the convex
 # hull of its unit normals (gamma = min_{|u|=1} max_l n_l . u >= this), which also rules out
@@ -25,6 +28,15 @@ def drop_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float) -
     """Volume added by dropping plane j (inf if the rest is unbounded): one qhull
     (:func:`polycc.geometry.halfplanes.drop_volume`)."""
     return drop_volume(planes, j, interior, volume, MIN_GAMMA)
+
+
+def recompute_cost(planes: np.ndarray, j: int, interior: np.ndarray, volume: float, now=None) -> float:
+    """The lazy greedy's cost of plane j after its polytope changed: read from every plane's cost at once
+    (:func:`all_drop_costs`, ``now`` if given) up to :data:`MAX_PLANES` planes, one qhull (:func:`drop_cost`)
+    above."""
+    if len(planes) > MAX_PLANES:
+        return drop_cost(planes, j, interior, volume)
+    return (all_drop_costs(planes, interior, volume) if now is None else now)[j]
 
 
 def _without(a: np.ndarray, j: int) -> np.ndarray:
@@ -52,6 +64,7 @@ class _Stream:
         self.interior = interior
         self.volume = volume
         self.version = 0
+        self._now = None  # (version, every plane's drop cost at that version)
         c0 = costs0(planes, interior, volume)
         essential = sum(not np.isfinite(c) for c in c0)
         self.need = len(planes) if len(planes) <= MIN_PLANES else max(MIN_PLANES, essential)
@@ -74,10 +87,15 @@ class _Stream:
     def _entries(self, c0):
         if len(self.planes) <= MIN_PLANES:
             return []
-        cs = c0 if c0 is not None and self.version == 0 else all_drop_costs(self.planes, self.interior, self.volume)
+        cs = c0 if c0 is not None and self.version == 0 else self._costs_now()
         heap = [(c, int(self.ids[j]), self.version) for j, c in enumerate(cs) if np.isfinite(c)]
         heapq.heapify(heap)
         return heap
+
+    def _costs_now(self) -> list[float]:
+        if self._now is None or self._now[0] != self.version:
+            self._now = (self.version, all_drop_costs(self.planes, self.interior, self.volume))
+        return self._now[1]
 
     def _pop(self, heap) -> tuple:
         """One pop of the greedy on this polytope: (key, added volume m^3 or None)."""
@@ -88,7 +106,8 @@ class _Stream:
             return key, None
         j = int(rows[0])
         if ver != self.version:
-            c = drop_cost(self.planes, j, self.interior, self.volume)
+            now = self._costs_now() if len(self.planes) <= MAX_PLANES else None
+            c = recompute_cost(self.planes, j, self.interior, self.volume, now)
             if np.isfinite(c):
                 heapq.heappush(heap, (c, orig, self.version))
             return key, None
@@ -236,11 +255,10 @@ def costs_key(planes: np.ndarray) -> tuple:
 def all_drop_costs(planes: np.ndarray, interior: np.ndarray, volume: float) -> list[float]:
     """Drop cost of every plane of a polytope (``interior`` its vertices' mean, ``volume`` their hull's), as
     the reduction computes them; what a caller may precompute into a ``cost_cache`` under :func:`costs_key`.
-    All planes at once (:func:`polycc.geometry.halfplanes.drop_volumes`: one enumeration of plane triples,
-    3-4x faster than a qhull per plane on the 20-60-plane polytopes of a 5 cm build); the same volumes as
-    :func:`drop_cost` to ~1e-9 of the polytope's (that one subtracts the hull of the unrounded vertices, so
-    it also counts the outward margin's skin) and the same planes infinite."""
-    return [float(c) for c in drop_volumes(planes, MIN_GAMMA, interior, volume)]
+    All planes at once (:func:`polycc.native.cap_volumes`: one enumeration of plane triples in C up to
+    64 planes); the same volumes as :func:`drop_cost` to ~1e-9 of the polytope's (that one subtracts the hull
+    of the unrounded vertices, so it also counts the outward margin's skin) and the same planes infinite."""
+    return [float(c) for c in cap_volumes(planes, MIN_GAMMA, interior, volume)]
 
 
 def _costs0(store: dict):

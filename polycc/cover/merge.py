@@ -32,6 +32,7 @@ from typing import Callable
 import numpy as np
 
 from polycc.geometry.lattice import integer_planes, lattice_hull, lattice_hull_facets
+from polycc.native import count_inside as count_inside_c
 
 MERGE_COSTS = ("paper", "delta")
 # Candidate boxes with more cells than this are first ranked by a lower bound of their
@@ -80,6 +81,9 @@ class VoxelBoxQuery:
             self.sat = S
         else:
             self.keys = [np.sort(self._key(q, a)) for a in range(3)]
+        # what the C count reads (polycc.native.count_inside): the grid as bytes, or the three key arrays in one
+        self._dense8 = None if self.dense is None else self.dense.view(np.uint8)
+        self._keys3 = None if self.keys is None else np.stack(self.keys)
 
     def _key(self, q: np.ndarray, a: int) -> np.ndarray:
         """Packed key of voxels ``q`` ordered (u, v, t): t = coordinate along axis a."""
@@ -127,6 +131,14 @@ class VoxelBoxQuery:
         return int(self._columns(ax, U.ravel(), V.ravel(), np.full(n, a[ax]), np.full(n, b[ax] - 1)).sum())
 
     def count_inside(self, A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 1e-7) -> int:
+        """Occupied voxels with lo <= v <= hi lying entirely inside the convex ``{q : A q + b <= 0}``: in C
+        (:func:`polycc.native.count_inside`, the arithmetic of :meth:`count_inside_numpy`), or by that
+        reference where the C is not available."""
+        c = count_inside_c(self._dense8, self.sat, self._keys3, self.shape, A, b, lo, hi, tol, DIRECT_CELLS)
+        return self.count_inside_numpy(A, b, lo, hi, tol) if c is None else c
+
+    def count_inside_numpy(self, A: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                           tol: float = 1e-7) -> int:
         """Occupied voxels with lo <= v <= hi lying entirely inside the convex ``{q : A q + b <= 0}``.
 
         A voxel is inside iff its 8 corners are (``A c + b <= tol`` for every row). Along any

@@ -226,7 +226,7 @@ def _one_heap_greedy(polytopes, max_planes, per_polytope=None):
     every polytope, no cache): the oracle of the test below."""
     import heapq
 
-    from polycc.budget.reduce import MIN_PLANES, all_drop_costs, drop_cost
+    from polycc.budget.reduce import MIN_PLANES, all_drop_costs, recompute_cost
     from polycc.geometry.halfplanes import polytope_volume
 
     cap = per_polytope if per_polytope is not None else 1 << 30
@@ -263,7 +263,7 @@ def _one_heap_greedy(polytopes, max_planes, per_polytope=None):
                 continue
             j = int(rows[0])
             if ver != version[k]:
-                c = drop_cost(planes[k], j, interior[k], volume[k])
+                c = recompute_cost(planes[k], j, interior[k], volume[k])
                 if np.isfinite(c):
                     heapq.heappush(heap, (c, k, orig, version[k]))
                 continue
@@ -513,8 +513,9 @@ def test_the_prefill_records_what_the_first_reductions_read(built4, monkeypatch)
     store = r.caches["drop_costs"]
     assert sum(len(s.ops) for k, s in store.items() if k[0] == "stream") > 0
     computed = []
-    real = red.drop_cost
-    monkeypatch.setattr(red, "drop_cost", lambda *a: computed.append(1) or real(*a))
+    for name in ("drop_cost", "all_drop_costs"):  # one plane by qhull, every plane at once
+        real = getattr(red, name)
+        monkeypatch.setattr(red, name, lambda *a, real=real: computed.append(1) or real(*a))
     reduced = 0
     for n in ns:
         polys = fam.materialise(n)

@@ -174,6 +174,7 @@ def test_set_cover_skips_voxels_already_held():
 @settings(max_examples=40)
 @given(st.integers(0, 10_000), st.booleans(), st.sampled_from([0, 4096]))
 def test_column_count_is_the_voxel_count(seed, sparse, direct):
+    """The column count (dense table or sorted keys, numpy reference and C) is the voxel-by-voxel count."""
     import polycc.cover.merge as M
 
     rng = np.random.default_rng(seed)
@@ -187,8 +188,9 @@ def test_column_count_is_the_voxel_count(seed, sparse, direct):
         h = lattice_hull(pts, b"QJ" if seed % 2 else b"Qt")
         lo, hi = pts.min(0), pts.max(0) - 1
         box = q[np.all((q >= lo) & (q <= hi), axis=1)]
-        assert Q.count_inside(h.equations[:, :3], h.equations[:, 3], lo, hi) == \
-            _inside_count(box, h.equations[:, :3], h.equations[:, 3], 1e-7)
+        want = _inside_count(box, h.equations[:, :3], h.equations[:, 3], 1e-7)
+        assert Q.count_inside_numpy(h.equations[:, :3], h.equations[:, 3], lo, hi) == want  # the reference
+        assert Q.count_inside(h.equations[:, :3], h.equations[:, 3], lo, hi) == want  # the C
         assert Q.count(lo, hi) == len(box)
     finally:
         M.DENSE_LIMIT, M.DIRECT_CELLS = old

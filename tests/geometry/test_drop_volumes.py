@@ -1,6 +1,7 @@
-"""The volume each half-plane's removal adds, every plane at once (polycc.geometry.halfplanes.drop_volumes, plane
-triples, no qhull), against one qhull half-space intersection per plane (the way the reduction computed it), and
-the boundedness of the other planes (bounded_without) against is_bounded per plane."""
+"""The volume each half-plane's removal adds, every plane at once by plane triples, no qhull: the numpy reference
+(polycc.geometry.halfplanes.drop_volumes) and the C the reduction runs (polycc.native.cap_volumes), each
+against one qhull half-space intersection per plane (the way the reduction computed it before), and the boundedness
+of the other planes (bounded_without, numpy and C) against is_bounded per plane."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from polycc import native
 from polycc.geometry.halfplanes import (
     TRIPLE_PLANES_MAX,
     axis_box,
@@ -31,8 +33,18 @@ def _per_plane(h: np.ndarray, c: np.ndarray, min_gamma: float) -> np.ndarray:
     return np.array(out)
 
 
-def _check(h: np.ndarray, c: np.ndarray, min_gamma: float = 1e-4) -> np.ndarray:
-    got = drop_volumes(h, min_gamma)
+IMPLS = {"numpy": drop_volumes, "C": native.cap_volumes}
+BOUNDED = {"numpy": bounded_without, "C": native.bounded_without}
+impls = pytest.mark.parametrize("impl", sorted(IMPLS))
+
+
+def test_the_c_is_built():
+    """The C tests below test the C, not the numpy fallback a machine without a compiler gets."""
+    assert native.load() is not None
+
+
+def _check(h: np.ndarray, c: np.ndarray, min_gamma: float = 1e-4, impl: str = "numpy") -> np.ndarray:
+    got = IMPLS[impl](h, min_gamma)
     want = _per_plane(h, c, min_gamma)
     assert np.array_equal(np.isfinite(got), np.isfinite(want))
     fin = np.isfinite(want)
@@ -49,10 +61,11 @@ def _check(h: np.ndarray, c: np.ndarray, min_gamma: float = 1e-4) -> np.ndarray:
     return got
 
 
+@impls
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(5, 60), flat=st.floats(0.05, 1.0),
        redundant=st.integers(0, 4), drop=st.integers(0, 6))
-def test_random_hulls(seed, n, flat, redundant, drop):
+def test_random_hulls(impl, seed, n, flat, redundant, drop):
     """Hulls of random points (elongated, with planes that touch nothing or only a vertex, and with planes
     dropped as the reduction does, down to where one more would leave the polytope unbounded)."""
     rng = np.random.default_rng(seed)
@@ -69,13 +82,14 @@ def test_random_hulls(seed, n, flat, redundant, drop):
         if len(h) > 5 and np.isfinite(drop_volumes(h, 1e-4)).sum() > 1:
             j = int(rng.choice(np.flatnonzero(np.isfinite(drop_volumes(h, 1e-4)))))
             h = np.delete(h, j, axis=0)
-    _check(h, pts.mean(axis=0))
+    _check(h, pts.mean(axis=0), impl=impl)
 
 
+@impls
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), k=st.integers(3, 40))
 @example(seed=32252, k=3)  # CI: the caps differed by 2.1e-11 m^3, beyond the first tolerance of 1.4e-11
-def test_lattice_polytopes_with_the_outward_margin(seed, k):
+def test_lattice_polytopes_with_the_outward_margin(impl, seed, k):
     """Hulls of voxel clusters in world units (integer normals, many vertices on four or more planes, every
     offset pushed out by the margin into slivers), as the cover hands them to the budget."""
     rng = np.random.default_rng(seed)
@@ -86,33 +100,37 @@ def test_lattice_polytopes_with_the_outward_margin(seed, k):
         return
     verts = voxel_corner_points(vox)
     h, world = world_halfplanes(nrm, verts, 0.05, rng.uniform(-2, 2, 3))
-    _check(h, world.mean(axis=0))
+    _check(h, world.mean(axis=0), impl=impl)
 
 
-def test_the_box_and_a_cut_corner():
+@impls
+def test_the_box_and_a_cut_corner(impl):
     """A box: every face is essential (inf). A box with its corner cut: dropping the cut adds the corner's
     tetrahedron, 1/6 of a unit cube's corner of legs 1."""
     box = axis_box([0, 0, 0], [2, 2, 2])
-    assert np.all(np.isinf(drop_volumes(box, 1e-4)))
+    assert np.all(np.isinf(IMPLS[impl](box, 1e-4)))
     cut = np.r_[np.ones(3) / np.sqrt(3.0), 5.0 / np.sqrt(3.0)]  # x + y + z <= 5: cuts the corner (2, 2, 2)
-    got = _check(np.vstack([box, cut]), np.ones(3))
+    got = _check(np.vstack([box, cut]), np.ones(3), impl=impl)
     assert got[-1] == pytest.approx(1.0 / 6.0)
 
 
-def test_many_planes_take_qhull_per_plane():
-    """Above TRIPLE_PLANES_MAX planes the enumeration would grow as m^4: qhull per plane, the same volumes."""
+@impls
+def test_many_planes_take_qhull_per_plane(impl):
+    """Above TRIPLE_PLANES_MAX planes (and the C's 64) the enumeration would grow as m^4: qhull per plane, the
+    same volumes."""
     rng = np.random.default_rng(5)
     pts = rng.normal(size=(60, 3))
     pts /= np.linalg.norm(pts, axis=1, keepdims=True)  # every point a vertex: ~116 facets
     h = hull_halfplanes(pts)
-    assert len(h) > TRIPLE_PLANES_MAX
-    _check(h, pts.mean(axis=0))
+    assert len(h) > max(TRIPLE_PLANES_MAX, native.MAX_PLANES)
+    _check(h, pts.mean(axis=0), impl=impl)
 
 
+@impls
 @settings(max_examples=80, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(5, 50), flat=st.floats(0.001, 1.0),
        drop=st.integers(0, 10), min_gamma=st.sampled_from([1e-9, 1e-4, 1e-2, 0.2, 0.5]))
-def test_bounded_without_is_is_bounded_per_plane(seed, n, flat, drop, min_gamma):
+def test_bounded_without_is_is_bounded_per_plane(impl, seed, n, flat, drop, min_gamma):
     """The certificate subsets give the same answer as the hull of the other normals, needles included."""
     rng = np.random.default_rng(seed)
     pts = rng.normal(size=(n, 3)) * np.array([1.0, flat, flat])
@@ -124,4 +142,4 @@ def test_bounded_without_is_is_bounded_per_plane(seed, n, flat, drop, min_gamma)
         if len(h) > 5:
             h = np.delete(h, int(rng.integers(len(h))), axis=0)
     want = [is_bounded(np.delete(h[:, :3], j, axis=0), min_gamma) for j in range(len(h))]
-    assert bounded_without(h[:, :3], min_gamma).tolist() == want
+    assert BOUNDED[impl](h[:, :3], min_gamma).tolist() == want
