@@ -3,7 +3,7 @@
 Removing a half-plane from {p : n_l . p <= d_l} can only enlarge the polytope, so every
 occupied voxel it contained stays inside. A plane is only dropped if the remaining ones
 still bound a finite polytope (:func:`polycc.geometry.halfplanes.is_bounded` with a margin
-:data:`MIN_GAMMA`). Volumes (m^3) of polytopes up to 64 planes come from one enumeration of plane triples
+:data:`MIN_GAMMA`). Volumes (m^3) of polytopes up to 128 planes come from one enumeration of plane triples
 for every plane at once (:func:`polycc.native.cap_volumes`, C; the numpy reference is
 :func:`polycc.geometry.halfplanes.drop_volumes`), larger ones from a qhull half-space intersection per
 plane (:func:`polycc.geometry.halfplanes.drop_volume`).
@@ -16,7 +16,12 @@ import heapq
 import numpy as np
 
 from polycc.geometry.halfplanes import MIN_PLANES, drop_volume, polytope_volume
-from polycc.native import MAX_PLANES, cap_volumes
+from polycc.native import cap_volumes
+
+# Up to this many planes a stale cost is read from every plane's cost of the polytope's current version (one C
+# call, :func:`all_drop_costs`, ~0.3 ms at 30 planes, growing as m^3); above it one qhull per stale plane (~0.6-1 ms)
+# is cheaper, as the greedy recomputes only 1-2 costs per drop.
+MAX_PLANES = 64
 
 # A polytope counts as bounded only if the origin lies at least this far inside the convex
 # hull of its unit normals (gamma = min_{|u|=1} max_l n_l . u >= this), which also rules out
@@ -256,7 +261,7 @@ def all_drop_costs(planes: np.ndarray, interior: np.ndarray, volume: float) -> l
     """Drop cost of every plane of a polytope (``interior`` its vertices' mean, ``volume`` their hull's), as
     the reduction computes them; what a caller may precompute into a ``cost_cache`` under :func:`costs_key`.
     All planes at once (:func:`polycc.native.cap_volumes`: one enumeration of plane triples in C up to
-    64 planes); the same volumes as :func:`drop_cost` to ~1e-9 of the polytope's (that one subtracts the hull
+    128 planes); the same volumes as :func:`drop_cost` to ~1e-9 of the polytope's (that one subtracts the hull
     of the unrounded vertices, so it also counts the outward margin's skin) and the same planes infinite."""
     return [float(c) for c in cap_volumes(planes, MIN_GAMMA, interior, volume)]
 

@@ -3,7 +3,7 @@ against, which runs instead (after a one-line notice) where no C compiler is ava
 
 * :func:`cap_volumes` (``polycc_caps.c``): the drop volume (m^3) of every plane of a polytope at once, world
   frame, metres; reference :func:`polycc.geometry.halfplanes.drop_volumes`. The half-plane reduction
-  (:mod:`polycc.budget.reduce`) asks for these about 100,000 times on a 6M-splat build, for polytopes of 5-64
+  (:mod:`polycc.budget.reduce`) asks for these about 100,000 times on a 6M-splat build, for polytopes of 5-128
   planes: a qhull half-space intersection per plane (scipy) spends 0.3-0.6 ms a call on setup alone, the numpy
   enumeration tens of array calls per polytope.
 * :func:`count_inside` (``polycc_count.c``): occupied voxels entirely inside a convex polytope within an index
@@ -30,7 +30,7 @@ from polycc.geometry.halfplanes import drop_volumes, is_bounded
 HERE = Path(__file__).resolve().parent
 SOURCES = [HERE / "polycc_caps.c", HERE / "polycc_caps.h", HERE / "polycc_count.c", HERE / "polycc_count.h"]
 CFLAGS = ["-O2", "-std=c99", "-ffp-contract=off", "-Wall", "-Wextra", "-Wconversion", "-Werror"]
-MAX_PLANES = 64  # POLYCC_CAPS_MAX_PLANES: the C takes up to this many planes (the on-plane sets are 64-bit masks)
+MAX_PLANES = 128  # POLYCC_CAPS_MAX_PLANES: the C takes up to this many planes (the on-plane sets are 128-bit masks)
 CDEF = """
 int polycc_cap_volumes(const double *h, int m, double min_gamma, double *vol, int8_t *state);
 int polycc_bounded_without(const double *n, int m, double min_gamma, int8_t *state);

@@ -1,7 +1,7 @@
 /* Drop volumes of a small convex polytope, every plane at once (see polycc_caps.h).
  *
  * Hand-written because the half-plane reduction asks for them about 100,000 times on a 6M-splat build,
- * for polytopes of 5-64 planes: qhull (scipy) spends 0.3-0.6 ms a call on setup alone and numpy's
+ * for polytopes of 5-128 planes: qhull (scipy) spends 0.3-0.6 ms a call on setup alone and numpy's
  * enumeration tens of array calls. The method is the numpy reference's
  * (polycc.geometry.halfplanes.drop_volumes and bounded_without), tested against it and against qhull:
  *
@@ -29,6 +29,8 @@
 #define MIN_PLANES 4
 #define MAXP POLYCC_CAPS_MAX_PLANES
 
+typedef unsigned __int128 mask; /* one bit per plane (gcc and clang on 64-bit targets) */
+
 typedef struct {
     double x, y, z;
 } v3;
@@ -36,7 +38,7 @@ typedef struct {
 typedef struct {
     v3 p;
     int vj;      /* the one plane p violates, or -1: p is a vertex of P */
-    uint64_t on; /* the planes p lies on */
+    mask on;     /* the planes p lies on */
 } vertex;
 
 typedef struct {
@@ -324,7 +326,7 @@ int polycc_cap_volumes(const double *h, int m, double min_gamma, double *vol, in
             for (c = b + 1; c < m; c++) {
                 /* meet() with the pairs' cross products from the table (c x a = -(a x c), exactly) */
                 v3 p, bc = cr[b * m + c], ac = cr[a * m + c], ab = cr[a * m + b];
-                uint64_t on = 0;
+                mask on = 0;
                 int nv = 0, vj = -1, k;
                 double det = dot(n[a], bc);
                 if (!(fabs(det) > DET_MIN)) continue;
@@ -343,7 +345,7 @@ int polycc_cap_volumes(const double *h, int m, double min_gamma, double *vol, in
                         vj = l;
                         if (++nv > 1) break;
                     } else if (fabs(s) <= tol) {
-                        on |= (uint64_t)1 << l;
+                        on |= (mask)1 << l;
                     }
                 }
                 if (nv > 1) continue;
@@ -386,7 +388,7 @@ int polycc_cap_volumes(const double *h, int m, double min_gamma, double *vol, in
     for (int pass = 0; pass < 2; pass++) {
         ne = 0;
         for (i = 0; i < np; i++) {
-            uint64_t on = pts[i].on;
+            mask on = pts[i].on;
             if (pts[i].vj >= 0) {
                 for (l = 0; l < m; l++)
                     if (on >> l & 1) {

@@ -7,7 +7,7 @@
 
 #include <stdint.h>
 
-#define POLYCC_CAPS_MAX_PLANES 64
+#define POLYCC_CAPS_MAX_PLANES 128
 
 /* vol[j]: volume (m^3) that dropping plane j adds to P (0 if it touches no vertex of P);
  * state[j]: 1 if the other planes' normals are bounded with margin min_gamma, 0 if not,

@@ -116,11 +116,11 @@ def test_the_box_and_a_cut_corner(impl):
 
 @impls
 def test_many_planes_take_qhull_per_plane(impl):
-    """Above TRIPLE_PLANES_MAX planes (and the C's 64) the enumeration would grow as m^4: qhull per plane, the
+    """Above TRIPLE_PLANES_MAX planes (and the C's 128) the enumeration would grow as m^4: qhull per plane, the
     same volumes."""
     rng = np.random.default_rng(5)
-    pts = rng.normal(size=(60, 3))
-    pts /= np.linalg.norm(pts, axis=1, keepdims=True)  # every point a vertex: ~116 facets
+    pts = rng.normal(size=(150, 3))
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)  # every point a vertex: ~296 facets
     h = hull_halfplanes(pts)
     assert len(h) > max(TRIPLE_PLANES_MAX, native.MAX_PLANES)
     _check(h, pts.mean(axis=0), impl=impl)
