@@ -82,8 +82,11 @@ class VoxelBoxQuery:
         else:
             self.keys = [np.sort(self._key(q, a)) for a in range(3)]
         # what the C count reads (polycc.native.count_inside): the grid as bytes, or the three key arrays in one
+        # (self.keys then views its rows: the keys are held once)
         self._dense8 = None if self.dense is None else self.dense.view(np.uint8)
         self._keys3 = None if self.keys is None else np.stack(self.keys)
+        if self._keys3 is not None:
+            self.keys = list(self._keys3)
 
     def _key(self, q: np.ndarray, a: int) -> np.ndarray:
         """Packed key of voxels ``q`` ordered (u, v, t): t = coordinate along axis a."""
