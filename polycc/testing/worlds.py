@@ -47,6 +47,12 @@ class _World:
         while self.time() < t_end:
             time.sleep(self.poll_s)
 
+    def report(self) -> str:
+        """One paragraph on the simulated vehicle now, for a test that gives up on it."""
+        t, p, v, on = self.sample()
+        return (f"simulated t = {t:.2f} s, position {np.round(p, 3).tolist()} m, velocity "
+                f"{np.round(v, 3).tolist()} m/s, motors {'on' if on else 'off'}")
+
 
 class FastWorld(_World):
     """`polycc sim-device`'s model (the app's C code on host shims) on a UDP port, in real time."""
@@ -126,6 +132,9 @@ class FirmwareWorld(_World):
     def sleep(self, seconds: float) -> None:
         self.sitl.sleep(seconds)
 
+    def report(self) -> str:
+        return f"{super().report()}; {self.sitl.stall_report()}; {self.sitl._last_lines()}"
+
     def __enter__(self) -> "FirmwareWorld":
         self.sitl.start()
         return self
@@ -134,3 +143,38 @@ class FirmwareWorld(_World):
         if exc[0] is not None:
             self.sitl.keep_run_dir()
         self.sitl.stop()
+
+
+class ScriptTimeout(AssertionError):
+    """A user's script (a README example) did not finish within its simulated-time limit."""
+
+
+def run_script(world: _World, code: str, limit_s: float, globals_: dict | None = None,
+               filename: str = "README.md") -> None:
+    """Run ``code`` (a user's cflib script, URI already pointed at ``world``) as a script, in a thread, and
+    wait at most ``limit_s`` seconds of simulated time for it; an exception in it is raised here.
+
+    Why: such a script waits on cflib queues with no timeout of its own (``SyncLogger``, ``SyncCrazyflie``),
+    so a vehicle that never reaches the state it waits for hangs it for ever, and a test with it, until
+    pytest-timeout's 20 minutes (CI, 2026-12-07: the README example in ``SyncLogger`` after the land). Here it
+    fails after ``limit_s`` of the simulator's clock with where the vehicle is; a simulation that stops
+    advancing raises the world's own stall error. The script's thread is a daemon: left blocked, it does
+    not keep the test process alive."""
+    import threading
+
+    err: list[BaseException] = []
+
+    def main():
+        try:
+            exec(compile(code, filename, "exec"), {} if globals_ is None else globals_)
+        except BaseException as exc:  # noqa: BLE001 -- re-raised in the caller's thread
+            err.append(exc)
+
+    th = threading.Thread(target=main, name=f"script {filename}", daemon=True)
+    th.start()
+    if not world.wait_until(lambda: not th.is_alive(), limit_s):
+        raise ScriptTimeout(f"{filename}: the script did not finish within {limit_s:.0f} s of simulated time; "
+                            f"{world.report()}")
+    th.join()
+    if err:
+        raise err[0]

@@ -10,7 +10,7 @@ import pytest
 
 from polycc.testing.files import readme_block
 from polycc.testing.flight_scenarios import Recorder, demo_box_distance, motors_stop_height
-from polycc.testing.worlds import FastWorld
+from polycc.testing.worlds import FastWorld, run_script
 
 pytest.importorskip("cflib")
 R = 0.1
@@ -41,7 +41,7 @@ def test_readme_shield_example_stops_in_front_of_the_box_and_off_it_crashes(tmp_
         src = code if shield else code.replace('"polyccShield.enable", 1', '"polyccShield.enable", 0')
         with FastWorld(tmp_path / "b" / "polytopes.h", START) as world:
             with Recorder(world, {}) as rec:
-                exec(compile(src.replace("udp://127.0.0.1:19850", world.uri), "README.md", "exec"), {})
+                run_script(world, src.replace("udp://127.0.0.1:19850", world.uri), 90.0)
             a = rec.array()
             tr = world.model.app.lib.polycc_controller_trace()
             counters = (int(tr.decisions), int(tr.backups))
