@@ -14,6 +14,13 @@ Runners (:func:`make_runner`):
 * ``dask="tcp://host:8786"``: an existing Dask distributed scheduler (every worker needs polycc
   installed, same version); ``dask="local:N"``: a local Dask cluster of N single-threaded worker
   processes, started for the run and closed after it. Needs ``pip install 'polycc[dask]'``.
+
+``Runner.local_cores`` is how many local processes the stages outside the graph (the budget's
+candidates) may fork: N for ``jobs=N`` and ``local:N``, every core for a remote scheduler.
+A local cluster's workers run without Dask's statistical profiler and without the nanny's
+``MALLOC_TRIM_THRESHOLD_`` (setting it turns off glibc's adaptive mmap threshold, so every large numpy
+array was mapped and faulted in afresh: the 1.5M-splat room at 2.5 cm spent 49 s in the kernel
+instead of 15, and its occupancy took 20.6 s on 2 workers instead of 6.9).
 """
 
 from __future__ import annotations
@@ -68,6 +75,7 @@ class Runner:
 
     workers = 1
     where = "this process"
+    local_cores = 1  # local processes the stages outside the graph may fork (the budget); None: every core
 
     def __init__(self):
         self.stats = RunStats(workers=self.workers, where=self.where)
@@ -127,7 +135,7 @@ class PoolRunner(Runner):
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
-        self.workers = int(jobs)
+        self.workers = self.local_cores = int(jobs)
         self.where = f"{jobs} local processes"
         super().__init__()
         method = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
@@ -205,9 +213,18 @@ class DaskRunner(Runner):
                 n = 0
             if n < 1:
                 raise PolyccError(f"--dask {address}: expected local:N with N >= 1 worker processes, e.g. local:2")
-            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+            import dask
+
+            # no MALLOC_TRIM_THRESHOLD_ in the workers' environment (module docstring: measured), and no
+            # statistical profiler (it samples each running task's stack 100 times a second under the GIL;
+            # not measured on its own). A cluster of your own: `dask worker --no-nanny` sets no environment
+            with dask.config.set({"distributed.worker.profile.enabled": False,
+                                  "distributed.nanny.pre-spawn-environ": {
+                                      "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}}):
+                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                            dashboard_address=None)
             self.client = Client(self.cluster)
-            self.workers = n
+            self.workers = self.local_cores = n
             self.where = f"local Dask cluster, {n} workers"
         else:
             try:
@@ -217,6 +234,7 @@ class DaskRunner(Runner):
                                   "`dask scheduler` and workers with `dask worker ADDRESS`, or use --dask local:N")\
                     from None
             self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+            self.local_cores = None  # the budget runs on this machine, on every core
             self.where = f"Dask scheduler {address}, {self.workers} workers"
         super().__init__()
 

@@ -164,10 +164,11 @@ def build(scene_path: str | Path, out: str | Path, settings: SceneSettings | Non
                              progress=progress)
         t_cover = time.perf_counter() - t
         return _budget_and_write(scene_path, out, settings, options, budget, scene, occ, family, t_all, t_cover,
-                                 progress)
+                                 progress, runner.local_cores)
 
 
-def _budget_and_write(scene_path, out, settings, options, budget, scene, occ, family, t_all, t_cover, progress):
+def _budget_and_write(scene_path, out, settings, options, budget, scene, occ, family, t_all, t_cover, progress,
+                      local_cores: int | None = None):
     out.mkdir(parents=True, exist_ok=True)
     family.meta.update({"scene_sha256": scene.sha256, "scene": str(scene_path),
                         "scene_settings": settings.as_record()})
@@ -176,7 +177,7 @@ def _budget_and_write(scene_path, out, settings, options, budget, scene, occ, fa
     t = time.perf_counter()
     best, cands, binding = select(family, budget, mc_samples=options.mc_samples,
                                   progress=(lambda d, n: progress("budget", d, n)) if progress else None,
-                                  workers=None if options.dask else options.jobs, stage_progress=progress)
+                                  workers=local_cores, stage_progress=progress)
     t_budget = time.perf_counter() - t
     us = cycle_model.estimate_us(best.packed, options.kappa)
     if progress:
