@@ -46,6 +46,7 @@ LOG_MAX_BYTES = 26  # values in one log block (a CRTP packet of 30 bytes minus i
 _SIZES = {"uint8_t": 1, "int8_t": 1, "uint16_t": 2, "int16_t": 2, "uint32_t": 4, "int32_t": 4, "float": 4, "FP16": 2}
 TAKEOFF_SPEED = 0.5  # m/s, high-level takeoff
 LAND_SPEED = 0.3  # m/s, high-level landing
+HANDOVER_WAIT_S = 13.0  # s, longer than the app's settling hold (POLYCC_APP_SETTLE_MAX_MS = 12 s)
 HEARTBEAT_S = 0.1  # app-channel heartbeat period
 ESTIMATE_LOST_S = 1.0  # no position sample for this many wall seconds: stop
 LANDED_Z = 0.08  # m: on the floor
@@ -325,8 +326,10 @@ def _leave(cf, session: _Session, log: FlightLog, land: bool) -> None:
             return
         set_param(cf, "polycc.enable", 0)  # confirmed: a queued write could be overtaken by the land
         # the hand-over (status 14) holds until the PID's z integral has decayed; a land sent while the app
-        # still streams its hold would be cancelled by it
-        session.wait(lambda: session.status() not in FLYING, "handing over", 10.0, watch_app=False)
+        # still streams its hold would be cancelled by it (the high-level commander's task preempts the app
+        # between its check for a new plan and its hold setpoint, which stops the plan): wait past the hold's
+        # longest, POLYCC_APP_SETTLE_MAX_MS = 12 s (firmware_app/src/polycc_app.h); it was 10 s
+        session.wait(lambda: session.status() not in FLYING, "handing over", HANDOVER_WAIT_S, watch_app=False)
         log.note("app disabled: the high-level commander holds the position")
         if land:
             pos = session.position()

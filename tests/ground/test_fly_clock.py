@@ -93,3 +93,16 @@ def test_the_drones_clock_never_runs_backwards():
         s.stamp(1020)  # 20 ms of the drone's time in 200 ms of wall time
     b = s.now()
     assert b >= a >= 0.2
+
+
+def test_the_hand_over_wait_outlasts_the_apps_settling_hold():
+    """Regression: `polycc fly` waited 10 s for the app to let go before its land, the app's settling hold lasts up
+    to 12 s, and a land sent during the hold can be stopped by the hold's next setpoint (the high-level
+    commander's task preempts the app between its check for a new plan and that setpoint): the land was lost."""
+    import re
+
+    from polycc.resources import firmware_app
+
+    src = (firmware_app() / "src" / "polycc_app.h").read_text()
+    settle_ms = int(re.search(r"#define POLYCC_APP_SETTLE_MAX_MS (\d+)u", src).group(1))
+    assert fly_mod.HANDOVER_WAIT_S > settle_ms / 1000.0
