@@ -37,6 +37,7 @@
 #include "app.h"
 #include "app_channel.h"
 #include "commander.h"
+#include "config.h" /* CMD_HIGH_LEVEL_TASK_PRI */
 #include "controller.h"
 #include "crtp.h"
 #include "crtp_commander_high_level.h"
@@ -314,6 +315,31 @@ static void finishHandOver(void)
     holding = false;
 }
 
+/* The high-level commander carries out a command from the ground (takeoff, go_to, land, ...) in its own task,
+ * CMD_HIGH_LEVEL_TASK_PRI (config.h), which preempts the app's.  A command carried out between the hand-over's
+ * check of the planner (crtpCommanderHighLevelIsStopped) and what the hand-over then sends would be lost: a hold
+ * setpoint above HIGHLEVEL stops the planner (commanderSetSetpoint), a go_to replaces the plan.  A user's land
+ * sent while the app settled was lost that way, and the vehicle hovered on (docs/barrier.md, "a land lost to
+ * the hand-over").  So the hand-over runs above that task: a command that arrives meanwhile is carried out right
+ * after it, and the next app tick sees the planner running and lets go.  The raised section blocks on nothing
+ * the high-level task can hold (that task cannot be preempted by the app), and lasts one go_to plan at most. */
+#define POLYCC_APP_HANDOVER_TASK_PRI (CMD_HIGH_LEVEL_TASK_PRI + 1)
+
+static void handOverStep(void);
+
+/* One hand-over step (handOverStep) above the high-level commander's task. */
+static void handOverHold(void)
+{
+    UBaseType_t prio = uxTaskPriorityGet(NULL);
+    if (prio < POLYCC_APP_HANDOVER_TASK_PRI) {
+        vTaskPrioritySet(NULL, POLYCC_APP_HANDOVER_TASK_PRI);
+    }
+    handOverStep();
+    if (prio < POLYCC_APP_HANDOVER_TASK_PRI) {
+        vTaskPrioritySet(NULL, prio); /* a command that came meanwhile is carried out here */
+    }
+}
+
 /* Give the vehicle to the high-level commander, holding position: go_to the stopping point of
  * a POLYCC_APP_HANDOVER_ACC deceleration (no further than half the last clearance), then relax
  * the priority.  If the high-level commander refuses, the app keeps holding the position itself.
@@ -322,8 +348,10 @@ static void finishHandOver(void)
  * app only relaxes the priority.
  * With the PID controller and a wound-up z integral, the app first holds the stopping point itself
  * (settling, status 13) until the integral has decayed, a high-level command arrives or
- * POLYCC_APP_SETTLE_MAX_MS passed (polycc_app.h). */
-static void handOverHold(void)
+ * POLYCC_APP_SETTLE_MAX_MS passed (polycc_app.h).
+ * Runs above the high-level commander's task (handOverHold): while the app holds, a land from the ground is
+ * either seen by the check below or carried out after this step's setpoint. */
+static void handOverStep(void)
 {
     float x[3], v[3], yaw = 0.0f, s, d, T;
     int i;
@@ -791,8 +819,7 @@ uint32_t polycc_app_tick(void)
             lActive = 0u;
             return period;
         }
-        lStatus = POLYCC_STATUS_DISABLED; /* the high-level commander refused: still holding */
-        holdPosition(0);
+        lStatus = POLYCC_STATUS_DISABLED; /* the high-level commander refused: handOverHold sent the hold */
         return period;
     }
     linkLostLatched = false;

@@ -79,8 +79,8 @@
 /* Model steps a decision's candidate is certified for before the brake: two periods, so a decision whose
  * successor comes up to one period late is flown on its own certificate instead of expiring into the brake
  * (docs/barrier.md section 8, "Rate and slot").  With 1, every app tick more than a period late was a brake
- * pulse: 17.6 expired ticks per 0.5 m/s flight in the real-firmware SITL, each a 2-3 m/s^2 step of the
- * vertical acceleration (the brake's u_z = 0 against the app's descent). */
+ * pulse: 17.6 expired ticks per 0.5 m/s flight in the real-firmware SITL; the one such event measured in
+ * detail was a 2-3 m/s^2 step of the vertical acceleration (the brake's u_z = 0 against the app's descent). */
 #define POLYCC_SHIELD_N_COMMIT 2u
 /* Under the backup, below this speed (m/s) the brake becomes a position hold where it got that slow:
  * a velocity setpoint of 0 leaves the velocity loop's integrator to creep the vehicle on. */

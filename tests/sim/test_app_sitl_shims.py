@@ -147,6 +147,40 @@ def test_a_land_sent_right_after_disable_is_kept(fresh):
     assert fresh.get_log("polycc", "status") == 0
 
 
+@pytest.mark.parametrize("when", ["settling", "settled", "no_settle"])
+def test_a_land_that_arrives_inside_the_hand_over_is_kept(fresh, when):
+    """Regression (issue 18, a real-firmware bench flight that hovered at 1.6 m after its land): the
+    high-level commander's task carries out a land as soon as it preempts the app. One that came between the
+    hand-over's check of the planner and its next send was lost: the hold setpoint stopped the planner, or the
+    go_to replaced the land. The shim delivers the land at exactly that instant (shim_hl_queue_land); the app
+    runs its hand-over above that task, so the land waits until the step is done and the next tick lets go.
+    settling: during the settling hold (posCtl.Zi wound up); settled: at the tick whose go_to ends the settle;
+    no_settle: at the first hand-over tick, whose go_to hands over at once."""
+    lib = fresh.lib
+    _enable(fresh)
+    fresh.set_estimate((-1.0, 0.5, 0.5))
+    lib.shim_set_position_integrator(0.0 if when == "no_settle" else 0.3)
+    fresh.tick(0)
+    fresh.set_param("polycc", "enable", 0)
+    k = 1
+    if when != "no_settle":
+        for k in range(1, 4):  # the settling hold (status 14)
+            fresh.tick(2 * k)
+            assert fresh.get_log("polycc", "status") == 14
+        if when == "settled":
+            lib.shim_set_position_integrator(0.0)  # decayed: this tick's go_to ends the settle
+        k += 1
+    lib.shim_hl_queue_land(0.0, 3.0)
+    fresh.tick(2 * k)
+    lib.shim_hl_run_pending()  # the app's task sleeps: a land still queued is carried out now
+    for j in range(k + 1, k + 4):
+        fresh.tick(2 * j)
+    rec = fresh.commander()
+    assert rec.hl_lands == 1 and rec.hl_state == 2, (rec.hl_state, rec.hl_gotos)  # landing, not holding
+    assert rec.relax_count == 1 and rec.active_priority == 1
+    assert fresh.get_log("polycc", "status") == 0
+
+
 def test_enabled_on_the_ground_sends_nothing(fresh):
     _enable(fresh, airborne=None)
     fresh.set_estimate((-1.0, 0.5, 0.0))

@@ -103,6 +103,14 @@ void shim_commander_set(const shim_setpoint_t *sp, int priority);
 void shim_commander_notify_stop(int remain_ms);
 /* As after a finished high-level takeoff: hovering at (x, y, z) under the high-level commander. */
 void shim_hl_hover_at(float x, float y, float z);
+/* A land (absolute height m, duration s) from the ground, carried out by the high-level commander's task at the
+ * worst instant for the app: its packet arrives just after the app's next check of the planner
+ * (crtpCommanderHighLevelIsStopped), and the task (CMD_HIGH_LEVEL_TASK_PRI) carries it out at the first
+ * preemption point after that check at which the app's task runs below that priority: a call into the
+ * commander or the high-level commander, a priority change.  shim_hl_run_pending(): the app's task sleeps (end
+ * of its tick), so a queued land is carried out now; 1 if one was. */
+void shim_hl_queue_land(float height, float duration);
+int shim_hl_run_pending(void);
 int shim_motors_on(void);
 
 /* Supervisor, controller and link (as the firmware reports them to apps). */

@@ -1,5 +1,6 @@
 /* Host FreeRTOS tick clock and usecTimestamp: simulated time, never sleeps. */
 #include "FreeRTOS.h"
+#include "config.h"
 #include "polycc_shim.h"
 #include "sim_internal.h"
 #include "task.h"
@@ -8,12 +9,14 @@
 static TickType_t tick;
 static uint64_t usecNow;
 static uint32_t usecSection;
+static UBaseType_t taskPriority = SHIM_APP_TASK_PRI;
 
 void shim_reset(void)
 {
     tick = 0u;
     usecNow = 0u;
     usecSection = 0u;
+    taskPriority = SHIM_APP_TASK_PRI;
     shimLogReset();
     shimCommanderReset();
     shimDebugReset();
@@ -73,4 +76,22 @@ uint64_t usecTimestamp(void)
     usecNow += usecSection;
     usecSection = 0u;
     return t;
+}
+
+UBaseType_t uxTaskPriorityGet(const TaskHandle_t xTask)
+{
+    (void)xTask;
+    return taskPriority;
+}
+
+void vTaskPrioritySet(TaskHandle_t xTask, UBaseType_t uxNewPriority)
+{
+    (void)xTask;
+    taskPriority = uxNewPriority;
+    shimHlTaskRun();
+}
+
+unsigned long shimTaskPriority(void)
+{
+    return taskPriority;
 }

@@ -21,6 +21,7 @@
 #include <string.h>
 
 #include "commander.h"
+#include "config.h"
 #include "controller.h"
 #include "controller_pid.h"
 #include "crtp.h"
@@ -62,6 +63,9 @@ static double hlT0, hlDur;
 static double hlC[4][8]; /* x, y, z, yaw: coefficients in s = (t - t0) / T */
 static double hlPos[3], hlVel[3], hlYaw; /* initial conditions when stopped (the state, deg -> rad) */
 static int hlCalls[4];                   /* takeoff, land, go_to, stop */
+/* A land queued by the test for the high-level commander's task (shim_hl_queue_land). */
+static int hlPending, hlPendingArmed;
+static float hlPendingHeight, hlPendingDuration;
 
 static double nowS(void)
 {
@@ -157,6 +161,8 @@ static int hlFinished(void)
 
 bool crtpCommanderHighLevelIsStopped(void)
 {
+    shimHlTaskRun();
+    hlPendingArmed = hlPending; /* its packet arrives right after this check */
     return hlState == HL_IDLE;
 }
 
@@ -227,6 +233,7 @@ int crtpCommanderHighLevelGoTo(const float x, const float y, const float z, cons
                                const bool relative)
 {
     double target[3];
+    shimHlTaskRun();
     ++hlCalls[2];
     target[0] = (double)x;
     target[1] = (double)y;
@@ -318,6 +325,7 @@ void shimCommanderReset(void)
     memset(hlVel, 0, sizeof hlVel);
     hlYaw = 0.0;
     memset(hlCalls, 0, sizeof hlCalls);
+    hlPending = hlPendingArmed = 0;
     memset(&lastState, 0, sizeof lastState);
     lastHlTick = 0u;
     controllerType = ControllerTypePID;
@@ -358,6 +366,7 @@ static void record(const setpoint_t *sp, int priority)
 
 void commanderSetSetpoint(setpoint_t *setpoint, int priority)
 {
+    shimHlTaskRun();
     if (priority < rec.active_priority) {
         ++rec.rejected;
         return;
@@ -378,6 +387,7 @@ int commanderGetActivePriority(void)
 
 void commanderRelaxPriority(void)
 {
+    shimHlTaskRun();
     ++rec.relax_count;
     crtpCommanderHighLevelTellState(&lastState);
     rec.active_priority = COMMANDER_PRIORITY_LOWEST;
@@ -643,4 +653,32 @@ void shim_hl_hover_at(float x, float y, float z)
     rec.active_priority = COMMANDER_PRIORITY_LOWEST;
     everFlew = 1;
     lastMotorsTick = shim_get_tick();
+}
+
+/* ---------------------------------------------------------------- the high-level commander's task */
+void shim_hl_queue_land(float height, float duration)
+{
+    hlPending = 1;
+    hlPendingArmed = 0;
+    hlPendingHeight = height;
+    hlPendingDuration = duration;
+}
+
+static int hlCarryOut(void)
+{
+    hlPending = hlPendingArmed = 0;
+    (void)crtpCommanderHighLevelLand(hlPendingHeight, hlPendingDuration);
+    return 1;
+}
+
+void shimHlTaskRun(void)
+{
+    if (hlPending && hlPendingArmed && shimTaskPriority() < CMD_HIGH_LEVEL_TASK_PRI) {
+        (void)hlCarryOut();
+    }
+}
+
+int shim_hl_run_pending(void)
+{
+    return hlPending ? hlCarryOut() : 0;
 }
