@@ -64,7 +64,7 @@ def _assert_same(job: S.Job, out, last, k: int, what: str) -> None:
     assert np.array_equal(job.x[job.n].view(np.uint32), np.asarray(last, np.float32).view(np.uint32)), what
 
 
-@pytest.mark.parametrize("n", [pytest.param(1500, marks=pytest.mark.slow), 120])
+@pytest.mark.parametrize("n", [pytest.param(600, marks=pytest.mark.slow), 120])
 @pytest.mark.parametrize("name", ["hulls", "boxes"])
 @pytest.mark.parametrize("pi", [0, 1, 2])
 def test_host_bitexact(name, pi, n):
@@ -72,7 +72,7 @@ def test_host_bitexact(name, pi, n):
     from polycc.sim.shield_ffi import run_batch
 
     sc = scene(name)
-    rows = _rows(sc, n, seed=100 + pi + (n == 1500))
+    rows = _rows(sc, n, seed=100 + pi + (n == 600))
     out, last = run_batch(HostScene(sc), PRM[pi], rows)
     for k in range(len(rows)):
         _assert_same(S.run(sc, PRM[pi], *rows[k].reshape(5, 3)), out, last[k], k, f"host {name} params {pi}")
