@@ -30,13 +30,6 @@ def pytest_configure(config):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def pytest_collection_modifyitems(config, items):
-    """Tests marked ``long`` (over a minute each in CI, and free of module state shared with other tests) run
-    first: with xdist, a two-minute test handed out last keeps one worker busy while the other idles, which
-    the CI's 30 minutes cannot afford. The order is otherwise the collection order (stable sort)."""
-    items.sort(key=lambda it: it.get_closest_marker("long") is None)
-
-
 @pytest.fixture
 def scenes_dir() -> Path:
     if not SCENES.is_dir():

@@ -15,7 +15,6 @@ from polycc.testing.files import CHECKOUT
 
 
 @pytest.mark.slow
-@pytest.mark.long
 def test_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     wheels = tmp_path / "wheels"
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",

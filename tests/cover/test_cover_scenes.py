@@ -48,7 +48,6 @@ def test_capture_arena(scenes_dir, tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.long
 def test_demo_arena(tmp_path, capsys):
     ply = tmp_path / "demo.ply"
     assert main(["demo-scene", str(ply)]) == 0

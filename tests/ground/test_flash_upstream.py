@@ -22,7 +22,6 @@ def _snapshot(tree):
     return sorted((str(p.relative_to(tree)), p.lstat().st_size, p.lstat().st_mtime_ns) for p in tree.rglob("*"))
 
 
-@pytest.mark.long
 def test_upstream_build_at_16_and_64_kib(tmp_path):
     from polycc.cli import main
     from polycc.firmware_trees import resolve_tree

@@ -25,7 +25,6 @@ pytestmark = pytest.mark.skipif(shutil.which("cmake") is None and not os.environ
 
 
 @pytest.mark.slow
-@pytest.mark.long
 @pytest.mark.parametrize("relay,drones", [("p2p", 4)])  # ("ground", 2) passes too (76 s); off to keep CI < 30 min
 def test_real_firmware_drones_cover_and_land(tmp_path, capsys, relay, drones, demo_build):
     """p2p (the default, issue 19's CI scenario): the four firmwares broadcast to each other through the SITL
