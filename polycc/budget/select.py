@@ -39,6 +39,7 @@ from polycc.errors import PolyccError
 from polycc.geometry.halfplanes import polytope_vertices
 from polycc.geometry.lattice import unique_rows
 from polycc.geometry.union_volume import in_voxels, union_waste
+from polycc.native import MAX_PLANES as NATIVE_MAX_PLANES
 from polycc.onboard.index import build_index, grid_box, index_slack
 from polycc.onboard.layout import (
     DEFAULT_NORMAL_GRID,
@@ -496,7 +497,7 @@ def _realise_many(family, budget, pairs, normals_before, occ_vol, mc_samples, pr
 
 PARALLEL_MIN_POLYTOPES = 500  # a family whose sub-cover is smaller is selected in this process (forks do not pay)
 PREFILL_ROUNDS = 10  # rounds of :meth:`_Realiser._prefill` (each one fork of the workers, or none if small)
-PREFILL_CHUNKS = 4  # chunks per worker in a prefill round
+CHUNK_SHARE = 3  # a prefill round's next chunk: 1 / (this * workers) of the weight still left (:func:`_guided`)
 STREAMS_IN_PROCESS = 64  # a prefill round of at most this many streams runs in this process (the same records)
 PREFILL_OVERSHOOT = 1.25  # its guess of the next key takes this many more pending entries than drops missing
 _FORKED: dict = {}  # what forked workers read (set before the fork, so nothing big is pickled)
@@ -524,10 +525,42 @@ def _streams_chunk(idx: list[int], store: dict | None = None, work: list | None 
     return out
 
 
-def _group_forked(g: int) -> list[Candidate]:
-    st = _FORKED["run"]
-    return _realise_many(st["family"], st["budget"], st["groups"][g], st["counts"], st["occ_vol"], st["mc_samples"],
-                         caches=st["caches"])
+def _stream_weight(m: int) -> float:
+    """Relative cost of making the recorded greedy of a polytope of ``m`` planes (every plane's drop cost, and its
+    first-phase drops): one C enumeration of plane triples up to :data:`polycc.native.MAX_PLANES` planes, one qhull
+    per plane above it. Measured on the 1.5M-splat room at 2.5 cm: 3.4-7.4e-7 s per m (m + 50) up to 128 planes,
+    5.1e-6 at 146 planes on average and 8.9e-6 at 271, so the qhull side is weighed m / 10 times more (the 18
+    polytopes above 128 planes took 8.4 of the round's 10.1 s, and the old weight, m (m + 50) for all, put
+    several in one chunk)."""
+    w = m * (m + 50.0)
+    return w * m / 10.0 if m > NATIVE_MAX_PLANES else w
+
+
+def _pull_forked(_: int) -> list:
+    return _pull(_FORKED["run"])
+
+
+def _pull(st: dict, report: Callable[[int], None] | None = None) -> list[tuple[int, Candidate | None]]:
+    """Realise the pairs of ``st`` one at a time, each time the next one no process has taken yet, in the order
+    ``st["order"]`` (the counter ``st["next"]`` is shared by this process and the forked workers); (position in
+    ``st["pairs"]``, candidate or None) of those this process took."""
+    out = []
+    nxt, done, pairs = st["next"], st["done"], st["pairs"]
+    while True:
+        with nxt.get_lock():
+            i = nxt.value
+            nxt.value += 1
+        if i >= len(pairs):
+            return out
+        i = st["order"][i]
+        n, T = pairs[i]
+        out.append((i, realise(st["family"], n, T, st["budget"], st["counts"][n], st["occ_vol"], st["mc_samples"],
+                               caches=st["caches"])))
+        with done.get_lock():
+            done.value += 1
+            finished = done.value
+        if report:
+            report(finished)
 
 
 class _Realiser:
@@ -537,8 +570,8 @@ class _Realiser:
     A family of at least :data:`PARALLEL_MIN_POLYTOPES` polytopes is spread over ``workers`` processes:
     first the recorded greedy of every polytope of the pairs that will be reduced, as far as their
     reductions will read it (:meth:`_prefill`: one qhull per drop cost, the bulk of the work; each polytope
-    once, on whichever worker is free), then the pairs themselves in contiguous runs of n (neighbouring n
-    share polytopes), each run's worker starting from the cache with those records in it. The workers are
+    once, on whichever worker is free), then the pairs themselves, each taken by the next worker to come free
+    (:meth:`_pulled`), every worker starting from the cache with those records in it. The workers are
     forked, so they read the family and the cache without a copy. The result does not depend on
     ``workers``: :func:`realise` is a pure function of its pair, and the cache gives the same result bit for
     bit (the records are computed by the same code on the same float64 inputs).
@@ -570,12 +603,7 @@ class _Realiser:
             return _realise_many(self.family, budget, pairs, before, self.occ_vol, self.mc_samples, report,
                                  caches=self.caches)
         self._prefill(budget, pairs, before)
-        groups = _split(pairs, [float(self.counts[n]) ** 1.5 for n, _ in pairs], self.workers)
-        return self._fork(_group_forked, range(1, len(groups)), dict(
-            run=dict(family=self.family, budget=budget, groups=groups, counts=before, occ_vol=self.occ_vol,
-                     mc_samples=self.mc_samples, caches=self.caches)),
-            lambda: _realise_many(self.family, budget, groups[0], before, self.occ_vol, self.mc_samples,
-                                  report, caches=self.caches), report, [len(g) for g in groups])
+        return self._pulled(budget, pairs, before, report)
 
     def _prefill(self, budget, pairs, before) -> None:
         """Fill the cache with the recorded greedy (:class:`polycc.budget.reduce._Stream`) of every polytope the
@@ -607,7 +635,7 @@ class _Realiser:
                     todo[key] = (key, h, v, None)
             need[n] = (int(self.counts[n]) - cap, keys)
         say = self.stage_progress or (lambda *a: None)
-        self._streams(list(todo.values()), [len(h) * (len(h) + 50.0) for _, h, _, _ in todo.values()],
+        self._streams(list(todo.values()), [_stream_weight(len(h)) for _, h, _, _ in todo.values()],
                       lambda d, t: say("drop costs", d, t))
         lam = {n: -np.inf for n in need}
         for _ in range(PREFILL_ROUNDS):
@@ -634,8 +662,8 @@ class _Realiser:
     def _streams(self, work: list, weights: list[float], report: Callable[[int, int], None] | None = None) -> None:
         """Run :func:`_streams_chunk` over ``work`` on ``workers`` forked processes (in this process when ``work``
         has at most :data:`STREAMS_IN_PROCESS` streams) and keep the results. The
-        work is cut into several chunks per worker, heaviest first by ``weights``, which the pool hands out as
-        workers come free: a qhull's cost grows with the planes, and the number of pops a stream needs is
+        work is cut into chunks heaviest first by ``weights``, shrinking (:func:`_guided`), which the pool hands
+        out as workers come free: a qhull's cost grows with the planes, and the number of pops a stream needs is
         only guessed, so fixed shares came out 1.4-2.4x apart."""
         if not work:
             return
@@ -650,7 +678,7 @@ class _Realiser:
                 report(len(work), len(work))
             return
         order = sorted(range(len(work)), key=lambda k: -weights[k])
-        chunks = _split(order, [weights[k] for k in order], PREFILL_CHUNKS * self.workers)
+        chunks = _guided(order, [weights[k] for k in order], self.workers)
         _FORKED.clear()
         _FORKED.update(store=store, streams=work)
         try:
@@ -668,43 +696,57 @@ class _Realiser:
             for k, st in zip(chunk, streams):
                 store[work[k][0]] = st
 
-    def _fork(self, fn, args, shared: dict, here: Callable, report, sizes):
-        """``here()`` in this process while ``fn(a)`` runs for each of ``args`` in forked workers (reading
-        ``shared``); the concatenated results, this process's first."""
+    def _pulled(self, budget, pairs, before, report) -> list[Candidate]:
+        """The pairs realised by this process and ``workers - 1`` forked ones, each taking the next pair not yet
+        taken as it comes free (:func:`_pull`), the largest n first (the costliest, roughly: the last to finish
+        then waits for a small one); returned in the order of ``pairs``. The forked workers read the family and
+        the cache (with the prefill's records) without a copy; this process keeps its own records in the cache.
+
+        Before, the pairs were cut into contiguous runs of n, one per worker, weighed by their half-planes^1.5:
+        on the 1.5M-splat room at 2.5 cm the two runs took 10.7 and 6.4 s one after the other (one by one:
+        0.6-1.1 s at n <= 52, 1.6-2.9 s up to n = 315, 2.4 and 4.0 s at n = 420 and 630), and 13.0 s side by side
+        where the shorter run took less; now 11.3 s. Side by side each candidate takes about a third longer than
+        alone (both processes fetch from memory; the prefill's qhulls do not slow each other down)."""
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
-        args = list(args)
-        if not args:
-            return here()
+        ctx = mp.get_context("fork")
+        st = dict(family=self.family, budget=budget, pairs=pairs, counts=before, occ_vol=self.occ_vol,
+                  mc_samples=self.mc_samples, caches=self.caches, next=ctx.Value("i", 0), done=ctx.Value("i", 0),
+                  order=sorted(range(len(pairs)), key=lambda i: -pairs[i][0]))
         _FORKED.clear()
-        _FORKED.update(shared)
+        _FORKED.update(run=st)
         try:
-            with ProcessPoolExecutor(len(args), mp_context=mp.get_context("fork")) as ex:
-                futs = [ex.submit(fn, a) for a in args]
-                out = list(here())
-                finished = sizes[0] if sizes else 0
-                for f, size in zip(futs, (sizes or [0] * (len(args) + 1))[1:]):
-                    out += f.result()
-                    finished += size
-                    if report:
-                        report(finished)
+            if self.workers == 1:
+                got = dict(_pull(st, report))
+            else:
+                with ProcessPoolExecutor(self.workers - 1, mp_context=ctx) as ex:
+                    futs = [ex.submit(_pull_forked, k) for k in range(self.workers - 1)]
+                    got = dict(_pull(st, report))
+                    for f in futs:
+                        got.update(f.result())
         finally:
             _FORKED.clear()
-        return out
+        if report:
+            report(len(pairs))
+        return [got[i] for i in range(len(pairs)) if got[i] is not None]
 
 
-def _split(items: list, weights: list[float], parts: int) -> list[list]:
-    """``items`` in their order cut into at most ``parts`` contiguous runs of about equal weight (none empty)."""
-    parts = max(1, min(parts, len(items)))
-    total = sum(weights) or 1.0
-    out, run, acc = [], [], 0.0
+def _guided(items: list, weights: list[float], workers: int) -> list[list]:
+    """``items`` (heaviest first) cut in their order into chunks of about 1 / (:data:`CHUNK_SHARE` * workers) of
+    the weight still left, at least one item each (and at least 1 % of the total): large chunks first, small ones
+    last, so that workers taking the next chunk as they come free finish close together even where the weights
+    are guesses (guided self-scheduling). Before, 4 equal chunks per worker: a round's last chunk left the
+    other workers idle for up to an eighth of it."""
+    total = float(sum(weights)) or 1.0
+    left, out, run, acc = total, [], [], 0.0
     for item, w in zip(items, weights):
         run.append(item)
         acc += w
-        if len(out) < parts - 1 and acc >= total * (len(out) + 1) / parts:
+        if acc >= max(left / (CHUNK_SHARE * workers), 0.01 * total):
             out.append(run)
-            run = []
+            left -= acc
+            run, acc = [], 0.0
     if run:
         out.append(run)
     return out

@@ -548,3 +548,37 @@ def test_normal_keys_are_the_ids_of_np_unique_rows(seed, rows, grid, axis_share)
     g[g == 0] = 1
     _, want = np.unique(m // g[:, None], axis=0, return_inverse=True)
     assert np.array_equal(normal_keys(planes, grid), want.ravel())
+
+
+@settings(max_examples=200, deadline=None)
+@given(weights=st.lists(st.floats(0.0, 1e6), min_size=1, max_size=300), workers=st.integers(1, 8))
+def test_guided_chunks_keep_every_item_once_in_order_and_shrink(weights, workers):
+    """The prefill's chunks (heaviest first, handed out as workers come free): every item once, in order, none
+    empty; each closed chunk at least its share of what was left (or 1 % of the total), so their number stays
+    small, and the last ones are no heavier than that share."""
+    from polycc.budget.select import CHUNK_SHARE, _guided
+
+    weights = sorted(weights, reverse=True)
+    chunks = _guided(list(range(len(weights))), weights, workers)
+    assert [i for c in chunks for i in c] == list(range(len(weights))) and all(chunks)
+    total = sum(weights) or 1.0
+    left = total
+    for c in chunks[:-1]:
+        w = sum(weights[i] for i in c)
+        share = max(left / (CHUNK_SHARE * workers), 0.01 * total)
+        assert w >= share * (1 - 1e-9)
+        assert w - weights[c[-1]] < share * (1 + 1e-9)  # closed by its last item
+        left -= w
+    assert len(chunks) <= 101 + CHUNK_SHARE * workers * 6
+
+
+def test_stream_weights_count_the_qhull_side_above_the_c_limit():
+    """Regression: a stream's weight was m (m + 50) for every m; above the C's 128 planes each drop cost is one
+    qhull, 15-25x slower per unit (1.5M-splat room at 2.5 cm: 18 such polytopes took 8.4 of the first prefill
+    round's 10.1 s), and several shared one chunk."""
+    from polycc.budget.select import NATIVE_MAX_PLANES, _stream_weight
+
+    m = NATIVE_MAX_PLANES
+    assert _stream_weight(m) == m * (m + 50.0)
+    assert _stream_weight(m + 18) / ((m + 18) * (m + 68.0)) == pytest.approx(14.6)  # 146 planes: 5.1e-6 / 3.5e-7
+    assert _stream_weight(271) / (271 * 321.0) == pytest.approx(27.1)  # 8.9e-6 / 3.5e-7 = 25
