@@ -213,3 +213,35 @@ def test_runners_pass_results_along_the_graph():
     assert Runner().run(graph) == want
     with make_runner(2) as pool:
         assert pool.run(graph) == want
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 30), m=st.integers(0, 60))
+def test_a_handoff_pickles_to_the_same_nodes_and_entries(seed, n, m):
+    """What a merge stage hands on is packed into flat arrays (it is pickled to another worker, or through the
+    parent of --jobs processes); unpacked after pickling it gives the same nodes and heap entries, value for
+    value. On the 1.5M-splat room at 2.5 cm the family and the header are the same bit for bit."""
+    import pickle
+
+    from polycc.cover.merge import EXACT, STALE, StageNodes
+    from polycc.cover.tiled import Handoff, Ragged
+
+    rng = np.random.default_rng(seed)
+    verts = [rng.integers(-50, 50, (int(rng.integers(4, 12)), 3)) for _ in range(n)]
+    planes = [(rng.integers(-9, 9, (k, 3)), rng.integers(-500, 500, k)) for k in rng.integers(4, 20, n)]
+    live = StageNodes([int(r) for r in rng.integers(0, 2**40, n)], verts, planes, rng.random(n), rng.random(n),
+                      [None if rng.random() < 0.5 else rng.bytes(4) for _ in range(n)])
+    entries = [(float(rng.random()) if k % 2 else np.float64(rng.random()), int(rng.integers(0, max(n, 1))),
+                int(rng.integers(0, max(n, 1))), int(rng.choice([0, EXACT, STALE])),
+                None if rng.random() < 0.3 else int(rng.integers(0, 10**6))) for k in range(m)]
+    back, ent = pickle.loads(pickle.dumps(Handoff(live, entries))).unpack()
+    assert back.ref == live.ref and back.pattern == live.pattern
+    assert all(np.array_equal(a, b) and a.dtype == b.dtype for a, b in zip(back.vertices, live.vertices))
+    assert len(back.vertices) == n and len(back.planes) == n
+    assert all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) for a, b in zip(back.planes, live.planes))
+    assert np.array_equal(back.weight, live.weight) and np.array_equal(back.volume, live.volume)
+    assert ent == entries and all(type(a[0]) is float and (a[4] is None) == (b[4] is None)
+                                  for a, b in zip(ent, entries))
+    r = pickle.loads(pickle.dumps(Ragged(verts)))
+    assert len(r) == n and all(np.array_equal(a, b) for a, b in zip(r, verts)) and (n == 0 or np.array_equal(r[-1],
+                                                                                                      verts[-1]))
