@@ -123,7 +123,7 @@ class Ragged:
             counts = np.fromiter((len(a) for a in arrays), np.int64, len(arrays))
             flat = np.concatenate(arrays) if len(arrays) else np.zeros((0,), np.float64)
         self.flat, self.counts = flat, np.asarray(counts, np.int64)
-        self._items = list(arrays) if arrays is not None else None
+        self._items = None  # views of flat, made on first read (the arrays given are not kept: no second copy)
 
     def _list(self) -> list:
         if self._items is None:
