@@ -28,9 +28,12 @@ demo: $(STAMP)
 	$(BIN)/polycc build $(OUT)/arena.ply --flash-kb 64 -o $(OUT)
 	$(BIN)/polycc sim $(OUT) --scene $(OUT)/arena.ply --dynamics crazyflie
 
+# When pytest fails, tools/failure_summary.py prints what failed last (CI keeps only the log's tail).
 test: $(STAMP)
 	$(BIN)/ruff check polycc tests bench tools
-	$(BIN)/python -m pytest $(PYTEST_MARK) $(PYTEST_ARGS)
+	@mkdir -p build
+	$(BIN)/python -m pytest $(PYTEST_MARK) $(PYTEST_ARGS) --junitxml=build/test-report.xml \
+	  || { rc=$$?; $(BIN)/python tools/failure_summary.py build/test-report.xml $$rc; exit $$rc; }
 
 test-all: $(STAMP)
 	$(BIN)/python -m pytest $(PYTEST_ARGS)
