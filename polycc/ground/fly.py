@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from polycc.errors import PolyccError
-from polycc.link.cflib_tools import close_without_stop, set_param
+from polycc.link.cflib_tools import close_without_stop, connect, set_param
 from polycc.onboard.app import FLYING, REPLY_FORMAT, STATUS_NAMES, STATUS_TEXT, STOP_REASONS
 
 DEFAULT_URI = "udp://127.0.0.1:19850"
@@ -50,6 +50,7 @@ HANDOVER_WAIT_S = 13.0  # s, longer than the app's settling hold (POLYCC_APP_SET
 HEARTBEAT_S = 0.1  # app-channel heartbeat period
 ESTIMATE_LOST_S = 1.0  # no position sample for this many wall seconds: stop
 LANDED_Z = 0.08  # m: on the floor
+CONNECT_TIMEOUT_S = 30.0  # wall s for one connect try (link, TOCs, param values); two tries
 
 
 @dataclass
@@ -215,16 +216,14 @@ def fly(uri: str, goal, log_vars: list[str], timeout_s: float = 60.0, arrive_tol
     if SerialDriver not in crtp.CLASSES:  # init_drivers appends the drivers again on every call
         crtp.init_drivers(enable_serial_driver=True)
     lock = threading.Lock()
-    try:
-        scf = SyncCrazyflie(uri, cf=Crazyflie(rw_cache=None))
-        scf.open_link()
-    except Exception as e:
-        raise PolyccError(f"cannot connect to {uri}: {e}; is the Crazyflie (or `polycc sim-device`) running?") from None
+    try:  # bounded, and one fresh session after a stalled one (cflib waits for ever on a lost reply)
+        scf = connect(uri, CONNECT_TIMEOUT_S, attempts=2)
+    except PolyccError as e:
+        raise PolyccError(f"{e}; is the Crazyflie (or `polycc sim-device`) running?") from None
     cf = scf.cf
     configs = []
     log = None
     try:
-        scf.wait_for_params()
         toc = cf.log.toc
         wanted = list(POSITION) + ["polycc.status"] + log_vars
         types = {}

@@ -5,11 +5,12 @@
 * :func:`close_without_stop` closes a session without cflib's parting ``send_setpoint(0, 0, 0, 0)``,
   which at CRTP priority stops the high-level commander and cuts the motors of a drone in the air;
 * :func:`connect` opens a :class:`~cflib.crazyflie.syncCrazyflie.SyncCrazyflie` and waits for the TOCs
-  and param values, with a wall-clock watchdog (cflib waits forever for a lost reply).
+  and param values, with a wall-clock watchdog (cflib waits forever for a lost reply) and optional retries.
 """
 
 from __future__ import annotations
 
+import sys
 import threading
 
 from polycc.errors import PolyccError
@@ -51,9 +52,29 @@ def close_without_stop(scf) -> None:
     scf.close_link()
 
 
-def connect(uri: str, timeout_s: float = 60.0, rw_cache: str | None = None):
+def connect(uri: str, timeout_s: float = 60.0, rw_cache: str | None = None, attempts: int = 1):
     """A connected ``SyncCrazyflie`` with its TOCs and all param values read, or a one-line error after
-    ``timeout_s`` wall seconds. ``rw_cache``: cflib's TOC cache folder (a repeat connect skips the TOC)."""
+    ``attempts`` tries of ``timeout_s`` wall seconds each. ``rw_cache``: cflib's TOC cache folder (a repeat
+    connect skips the TOC). A stalled try is closed (its cflib threads stop) before the next one, which is
+    said on stderr.
+
+    Why retry: cflib's serial driver drops a reply that arrives before its CRTP reader thread has first
+    asked for one (``cflib.cpx.CPXRouter`` has no queue for CRTP until then), and waits for it for ever.
+    A loaded host makes that thread late; a fresh session connects."""
+    for k in range(1, max(1, attempts) + 1):
+        try:
+            return _connect_once(uri, timeout_s, rw_cache)
+        except _Stalled as exc:
+            if k >= attempts:
+                raise PolyccError(str(exc)) from None
+            print(f"polycc: {exc}; retrying with a fresh cflib session ({k + 1} of {attempts})", file=sys.stderr)
+
+
+class _Stalled(PolyccError):
+    """A connect that neither finished nor failed within its time (retried by :func:`connect`)."""
+
+
+def _connect_once(uri: str, timeout_s: float, rw_cache: str | None):
     try:
         import cflib.crtp
         from cflib.crazyflie import Crazyflie
@@ -83,6 +104,7 @@ def connect(uri: str, timeout_s: float = 60.0, rw_cache: str | None = None):
             close_without_stop(scf)
         except Exception:
             pass
-        why = f"{result['error']}" if "error" in result else f"no TOC and param values within {timeout_s:g} s"
-        raise PolyccError(f"cflib could not connect to {uri}: {why}")
+        if "error" in result:
+            raise PolyccError(f"cflib could not connect to {uri}: {result['error']}")
+        raise _Stalled(f"cflib could not connect to {uri}: no TOC and param values within {timeout_s:g} s")
     return scf

@@ -118,12 +118,9 @@ def _connect_all(uris: list[str], timeout_s: float = CONNECT_TIMEOUT_S):
 
     def one(uri):
         try:
-            done[uri] = connect(uri, timeout_s)
-        except PolyccError:
-            try:
-                done[uri] = connect(uri, timeout_s)
-            except PolyccError as e:
-                done[uri] = e
+            done[uri] = connect(uri, timeout_s, attempts=2)
+        except PolyccError as e:
+            done[uri] = e
 
     threads = [threading.Thread(target=one, args=(u,), daemon=True) for u in uris]
     for t in threads:

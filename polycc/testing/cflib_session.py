@@ -6,7 +6,10 @@ from __future__ import annotations
 import threading
 import time
 
-SCENARIO_TIMEOUT_S = 10.0
+CONNECT_TIMEOUT_S = 8.0
+"""Wall seconds for one connect try (TOCs and params); :func:`scenario` tries twice."""
+SCENARIO_TIMEOUT_S = 30.0
+"""Backstop for :func:`run_with_timeout`: two connect tries and the bounded steps after them."""
 
 
 def run_with_timeout(fn, timeout_s: float = SCENARIO_TIMEOUT_S):
@@ -29,16 +32,22 @@ def run_with_timeout(fn, timeout_s: float = SCENARIO_TIMEOUT_S):
 
 
 def scenario(uri: str, model) -> dict:
-    """Connect, check TOCs, set and read back a param, stream logs, use the app channel."""
-    from cflib.crazyflie import Crazyflie
+    """Connect, check TOCs, set and read back a param, stream logs, use the app channel.
+
+    Every wait is bounded and the session is closed however this ends: a session left open on a
+    serial device that then goes away leaves cflib's CPX reader spinning for ever, printing a
+    traceback per failed read (CI, 2026-12-07: a stalled connect filled the test's captured output
+    until pytest-timeout fired outside the test and xdist aborted the run)."""
+    import queue
+
     from cflib.crazyflie.log import LogConfig
-    from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
-    from cflib.crazyflie.syncLogger import SyncLogger
+
+    from polycc.link.cflib_tools import connect
 
     out: dict = {}
     t0 = time.monotonic()
-    with SyncCrazyflie(uri, cf=Crazyflie()) as scf:
-        scf.wait_for_params()
+    scf = connect(uri, CONNECT_TIMEOUT_S, attempts=2)  # cflib's serial connect race: see connect()
+    try:
         out["connect_s"] = time.monotonic() - t0
         cf = scf.cf
         out["log_toc"] = {f"{g}.{n}" for g, names in cf.log.toc.toc.items() for n in names}
@@ -58,12 +67,20 @@ def scenario(uri: str, model) -> dict:
         lc = LogConfig(name="test", period_in_ms=10)
         lc.add_variable("polycc.psi", "float")
         lc.add_variable("stateEstimate.x", "float")
+        samples: queue.Queue = queue.Queue()  # as cflib's SyncLogger, with a timeout on each sample
+        lc.data_received_cb.add_callback(lambda ts, data, conf: samples.put((ts, data)))
+        cf.log.add_config(lc)
+        lc.start()
         out["log"] = []
-        with SyncLogger(scf, lc) as logger:
-            for ts, data, _ in logger:
-                out["log"].append((ts, data))
-                if len(out["log"]) == 5:
-                    break
+        try:
+            while len(out["log"]) < 5:
+                try:
+                    out["log"].append(samples.get(timeout=2.0))
+                except queue.Empty:
+                    raise AssertionError(f"log block: {len(out['log'])} of 5 samples, then none for 2 s") from None
+        finally:
+            lc.stop()
+            lc.delete()
 
         got = threading.Event()
         replies = []
@@ -71,6 +88,6 @@ def scenario(uri: str, model) -> dict:
         cf.appchannel.send_packet(b"hello")
         assert got.wait(2.0), "no app-channel reply"
         out["app"] = replies
+    finally:
+        scf.close_link()
     return out
-
-

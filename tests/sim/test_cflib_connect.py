@@ -51,7 +51,6 @@ def test_cflib_connects_over_udp():
         out = run_with_timeout(lambda: scenario(srv.uri, model))
         assert srv.bad_datagrams == 0
     check(out, model)
-    assert out["connect_s"] < 2.0
 
 
 @pytest.mark.parametrize("discovery", ["comports", "patched"])
@@ -83,3 +82,44 @@ def test_cflib_connects_over_serial_pty_twice(discovery):
         check(out, model)
         assert srv.hangups >= 1 and srv.link.decoder.stats.errors == 0
     assert srv.link_path is None or not os.path.lexists(srv.link_path)  # symlink removed on stop
+
+
+def test_a_stalled_serial_connect_is_closed_and_retried(monkeypatch, capsys):
+    """Regression (CI, 2026-12-07): cflib's CPX router drops a CRTP frame that arrives before cflib's
+    CRTP reader thread first asks for one (it has no queue for CRTP until then) and the connect then
+    waits for ever. A loaded host makes that thread late (seen in 1 of 40 connects with 3 busy
+    processes on 2 cores). The session left open then spun cflib's reader once the device went away,
+    printing a traceback per read. Here the reader is made late on the first session only: the first
+    try must stall, be closed (no cflib reader left running) and a fresh session must connect."""
+    import threading
+    import time
+
+    from cflib.cpx import CPXRouter
+    from cflib.crtp import serialdriver
+
+    from polycc.link.cflib_tools import connect
+
+    real_run = serialdriver._CPXReceiveThread.run
+    late = [True]
+
+    def run_late(self):
+        if late.pop() if late else False:
+            time.sleep(1.0)  # the device's first replies arrive while no CRTP queue exists: dropped
+        real_run(self)
+
+    monkeypatch.setattr(serialdriver._CPXReceiveThread, "run", run_late)
+    model = FakeModel()
+    with ExitStack() as stack:
+        srv = stack.enter_context(SerialDeviceServer(CrtpDevice(model), link_name=""))
+        name = os.path.basename(srv.pty_path)
+        stack.enter_context(mock.patch.object(SerialDriver, "get_devices", lambda self: {name: srv.pty_path}))
+        scf = run_with_timeout(lambda: connect(f"serial://{name}", 4.0, attempts=2))
+        try:
+            assert "retrying with a fresh cflib session (2 of 2)" in capsys.readouterr().err
+            assert scf.cf.param.get_value("polycc.goalX") is not None  # the second session is whole
+        finally:
+            scf.close_link()
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline and any(isinstance(t, CPXRouter) for t in threading.enumerate()):
+        time.sleep(0.05)
+    assert not [t for t in threading.enumerate() if isinstance(t, CPXRouter)], "a cflib CPX reader is still running"
