@@ -70,6 +70,12 @@ def connect(uri: str, timeout_s: float = 60.0, rw_cache: str | None = None, atte
             print(f"polycc: {exc}; retrying with a fresh cflib session ({k + 1} of {attempts})", file=sys.stderr)
 
 
+def _one_line(err: BaseException) -> str:
+    """cflib's link errors carry their traceback in the message: keep what precedes it, on one line."""
+    text = str(err).split("Traceback (most recent call last)")[0]
+    return " ".join(text.split()) or type(err).__name__
+
+
 class _Stalled(PolyccError):
     """A connect that neither finished nor failed within its time (retried by :func:`connect`)."""
 
@@ -105,6 +111,6 @@ def _connect_once(uri: str, timeout_s: float, rw_cache: str | None):
         except Exception:
             pass
         if "error" in result:
-            raise PolyccError(f"cflib could not connect to {uri}: {result['error']}")
+            raise PolyccError(f"cflib could not connect to {uri}: {_one_line(result['error'])}")
         raise _Stalled(f"cflib could not connect to {uri}: no TOC and param values within {timeout_s:g} s")
     return scf

@@ -123,3 +123,21 @@ def test_a_stalled_serial_connect_is_closed_and_retried(monkeypatch, capsys):
     while time.monotonic() < deadline and any(isinstance(t, CPXRouter) for t in threading.enumerate()):
         time.sleep(0.05)
     assert not [t for t in threading.enumerate() if isinstance(t, CPXRouter)], "a cflib CPX reader is still running"
+
+
+def test_a_refused_connect_is_one_line_without_cflib_traceback():
+    """cflib's link error carries its own traceback in the message; the user sees one line."""
+    import socket
+
+    from polycc.errors import PolyccError
+    from polycc.link.cflib_tools import connect
+
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now: the first datagram is refused
+    with pytest.raises(PolyccError) as exc:
+        run_with_timeout(lambda: connect(f"udp://127.0.0.1:{port}", 10.0, attempts=2))
+    msg = str(exc.value)
+    assert msg.startswith(f"cflib could not connect to udp://127.0.0.1:{port}: ") and "Connection refused" in msg
+    assert "\n" not in msg and "Traceback" not in msg
