@@ -89,8 +89,9 @@ def test_a_stalled_serial_connect_is_closed_and_retried(monkeypatch, capsys):
     CRTP reader thread first asks for one (it has no queue for CRTP until then) and the connect then
     waits for ever. A loaded host makes that thread late (seen in 1 of 40 connects with 3 busy
     processes on 2 cores). The session left open then spun cflib's reader once the device went away,
-    printing a traceback per read. Here the reader is made late on the first session only: the first
-    try must stall, be closed (no cflib reader left running) and a fresh session must connect."""
+    printing a traceback per read. Here the reader is made late on the first session only (past that
+    try's timeout, so it cannot connect however fast the host): the first try must stall, be closed (no
+    cflib reader left running) and a fresh session must connect."""
     import threading
     import time
 
@@ -104,7 +105,7 @@ def test_a_stalled_serial_connect_is_closed_and_retried(monkeypatch, capsys):
 
     def run_late(self):
         if late.pop() if late else False:
-            time.sleep(1.0)  # the device's first replies arrive while no CRTP queue exists: dropped
+            time.sleep(5.0)  # past the first try's 4 s: every reply to it arrives with no CRTP queue, dropped
         real_run(self)
 
     monkeypatch.setattr(serialdriver._CPXReceiveThread, "run", run_late)
