@@ -36,8 +36,9 @@ def scenario(uri: str, model) -> dict:
 
     Every wait is bounded and the session is closed however this ends: a session left open on a
     serial device that then goes away leaves cflib's CPX reader spinning for ever, printing a
-    traceback per failed read (CI, 2026-12-07: a stalled connect filled the test's captured output
-    until pytest-timeout fired outside the test and xdist aborted the run)."""
+    traceback per failed read into the captured output of every later test in that process (about
+    2.5 MB/s, measured; the likely start of the CI failure of 2026-12-07, where pytest-timeout fired
+    outside the serial-pty test and xdist aborted the run)."""
     import queue
 
     from cflib.crazyflie.log import LogConfig
