@@ -80,13 +80,11 @@ class FlightLog:
 def _import_cflib():
     try:
         import cflib.crtp
-        from cflib.crazyflie import Crazyflie
         from cflib.crazyflie.log import LogConfig
-        from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
     except ImportError:
         raise PolyccError("`polycc fly` needs Bitcraze's cflib: pip install 'polycc[crazyflie]' "
                           "(or pip install 'cflib>=0.1.32')") from None
-    return cflib.crtp, Crazyflie, LogConfig, SyncCrazyflie
+    return cflib.crtp, LogConfig
 
 
 def log_names(text: str) -> list[str]:
@@ -206,7 +204,7 @@ def fly(uri: str, goal, log_vars: list[str], timeout_s: float = 60.0, arrive_tol
     ``on_update(log)`` is called about 20 times a second from this thread.  A KeyboardInterrupt
     is re-raised after the app is disabled (and, with ``land``, the vehicle landed), with the
     log on the exception's ``flight_log`` attribute."""
-    crtp, Crazyflie, LogConfig, SyncCrazyflie = _import_cflib()
+    crtp, LogConfig = _import_cflib()  # the session itself: cflib_tools.connect
     logging.getLogger("cflib.crazyflie.toccache").setLevel(logging.ERROR)  # "Could not save cache": no cache used
     if not 10 <= period_ms <= 2550:
         raise PolyccError(f"--period-ms {period_ms}: cflib log periods are 10..2550 ms")
