@@ -10,7 +10,8 @@ Runners (:func:`make_runner`):
 
 * ``jobs=1``: in this process, in graph order.
 * ``jobs=N``: N local worker processes (``concurrent.futures`` with the ``forkserver`` start
-  method, so workers never inherit this process's threads or memory).
+  method, so workers never inherit this process's threads or memory), each with one BLAS thread
+  (:func:`one_blas_thread`).
 * ``dask="tcp://host:8786"``: an existing Dask distributed scheduler (every worker needs polycc
   installed, same version); ``dask="local:N"``: a local Dask cluster of N single-threaded worker
   processes, started for the run and closed after it. Needs ``pip install 'polycc[dask]'``.
@@ -92,6 +93,23 @@ def in_row_chunks(n: int, fn: Callable[[int, int], None], chunk: int | None = No
         f.result()
 
 
+def one_blas_thread():
+    """Context manager: BLAS and OpenMP thread pools of this process at one thread (threadpoolctl), restored
+    on exit. For a process that computes beside other worker processes: N workers on N cores each with a
+    BLAS pool of N threads run N^2 threads that spin against each other (OpenBLAS busy-waits). Measured on
+    the 6M-splat room's cover: the two selection-score tasks, side by side on 2 worker processes, took 2.8 s
+    each with 2-thread BLAS pools and 1.4-2.0 s with one thread (1.2 s alone in one process). Dask's local
+    cluster sets the same limit through its workers' environment."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1)
+
+
+def init_worker() -> None:
+    """Initialiser of every local worker process: one BLAS thread for the life of the process."""
+    one_blas_thread()
+
+
 def _timed(fn, *args):
     t = time.perf_counter()
     keep, pass_on = fn(*args)
@@ -170,7 +188,7 @@ class PoolRunner(Runner):
         ctx = mp.get_context(method)
         if method == "forkserver":
             ctx.set_forkserver_preload(["polycc.parallel", "numpy", "scipy.spatial"])
-        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx)
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=init_worker)
 
     def run(self, graph: dict, progress: Progress | None = None) -> dict:
         from concurrent.futures import FIRST_COMPLETED, wait

@@ -51,6 +51,7 @@ from polycc.onboard.layout import (
     n_clusters_for,
     pack_scene,
 )
+from polycc.parallel import init_worker, one_blas_thread
 
 REDUCTION_FACTORS = (1.5, 2.0, 3.0, 4.0, 6.0)  # candidate n as multiples of the no-reduction n
 CURVE_FACTORS = (0.5, 0.25, 0.1)  # smaller n also evaluated, for the trade-off curve
@@ -682,7 +683,8 @@ class _Realiser:
         _FORKED.clear()
         _FORKED.update(store=store, streams=work)
         try:
-            with ProcessPoolExecutor(min(self.workers, len(chunks)), mp_context=mp.get_context("fork")) as ex:
+            with ProcessPoolExecutor(min(self.workers, len(chunks)), mp_context=mp.get_context("fork"),
+                                     initializer=init_worker) as ex:
                 futs = [ex.submit(_streams_chunk, c) for c in chunks]
                 finished = 0
                 for f in as_completed(futs):
@@ -720,7 +722,8 @@ class _Realiser:
             if self.workers == 1:
                 got = dict(_pull(st, report))
             else:
-                with ProcessPoolExecutor(self.workers - 1, mp_context=ctx) as ex:
+                with ProcessPoolExecutor(self.workers - 1, mp_context=ctx, initializer=init_worker) as ex, \
+                        one_blas_thread():  # this process realises candidates beside its workers
                     futs = [ex.submit(_pull_forked, k) for k in range(self.workers - 1)]
                     got = dict(_pull(st, report))
                     for f in futs:
