@@ -40,7 +40,7 @@ from polycc.geometry.halfplanes import polytope_vertices
 from polycc.geometry.lattice import unique_rows
 from polycc.geometry.union_volume import in_voxels, union_waste
 from polycc.native import MAX_PLANES as NATIVE_MAX_PLANES
-from polycc.onboard.index import build_index, grid_box, index_slack
+from polycc.onboard.index import build_index, grid_box, index_bytes_at_least, index_slack
 from polycc.onboard.layout import (
     DEFAULT_NORMAL_GRID,
     MAX_POLY_PLANES,
@@ -266,6 +266,9 @@ def choose_index(packed: PackedScene, budget: Budget, max_bytes: int, cells=INDE
     D = float(np.float32(budget.clearance_cap))
     box = grid_box(packed, D + index_slack(packed, budget.kappa), cache)
     for s in cells:
+        if index_bytes_at_least(box, s, packed.n_polys) > max_bytes:
+            continue  # its top cells alone cannot fit: not listed (the same choice; a capped table's retries in
+            # realise asked for the 0.5 m grid of the 6M-splat room, 48 KB, six times with 5-6 KB free: 0.7 s each)
         try:
             ix = build_index(packed, budget.clearance_cap, s, budget.kappa, target=budget.rate_cycles,
                              max_bytes=max_bytes, cost=_leaf_cost, box=box)

