@@ -94,10 +94,25 @@ def _window_boxes(b: int) -> np.ndarray:
     return masks[np.argsort(-masks.sum(axis=1), kind="stable")]
 
 
-def _hull(key: bytes, offs: np.ndarray, mask: np.ndarray, cache: dict):
-    if key not in cache:
-        cache[key] = lattice_hull(voxel_corner_points(offs[mask]))
-    return cache[key]
+_PATTERN_HULLS: dict = {}  # (window cells, pattern bits) -> (volume, vertices), for every tile this process builds
+PATTERN_HULLS_MAX = 65_536  # entries kept (about 1 KB each); the cache starts afresh when full
+
+
+def _hull(key: bytes, offs: np.ndarray, mask: np.ndarray) -> tuple[float, np.ndarray]:
+    """(volume in cells, (H, 3) int64 read-only vertices) of the hull of the cluster pattern ``mask`` of the window
+    ``offs``, computed once per process: a worker that builds the clusters of several tiles reuses the patterns
+    they share (the 6M-splat room's 8 tiles at 5 cm held 36,748 patterns tile by tile, 20,407 distinct; qhull
+    was 10.5 of the clusters' 13.4 s)."""
+    k = (len(offs), key)
+    hit = _PATTERN_HULLS.get(k)
+    if hit is None:
+        if len(_PATTERN_HULLS) >= PATTERN_HULLS_MAX:
+            _PATTERN_HULLS.clear()
+        h = lattice_hull(voxel_corner_points(offs[mask]))
+        v = h.vertices
+        v.flags.writeable = False
+        hit = _PATTERN_HULLS[k] = (float(h.volume), v)
+    return hit
 
 
 def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True, centres: np.ndarray | None = None) -> Clusters:
@@ -118,7 +133,6 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True, centres:
     for k, o in enumerate(offs):  # K vectorised lookups, K = (2b+1)^3
         pos = lookup(skeys, pack(idx[centre] + o))
         nb[:, k] = np.where(pos >= 0, order[pos], -1)
-    hulls: dict = {}  # pattern bits -> hull, shared by the two passes
     if boxes:
         present = nb >= 0
         masks = _window_boxes(b)
@@ -128,7 +142,7 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True, centres:
         w0 = np.empty(len(uniq0))
         for p, bits in enumerate(uniq0):
             m = np.unpackbits(bits)[: len(offs)].astype(bool)
-            w0[p] = _hull(bits.tobytes(), offs, m, hulls).volume - m.sum()
+            w0[p] = _hull(bits.tobytes(), offs, m)[0] - m.sum()
         lossy = np.flatnonzero(w0[pat0.reshape(-1)] > 1e-9)
         if len(lossy):
             best = np.full(len(lossy), -1, np.int64)
@@ -147,10 +161,10 @@ def build_clusters(indices: np.ndarray, b: int = 1, boxes: bool = True, centres:
     verts = []
     for p, bits in enumerate(uniq):
         mask = np.unpackbits(bits)[: len(offs)].astype(bool)
-        h = _hull(bits.tobytes(), offs, mask, hulls)
-        volumes[p] = h.volume
-        weights[p] = max(h.volume - mask.sum(), 0.0)
-        verts.append(h.vertices)
+        volume, vertices = _hull(bits.tobytes(), offs, mask)
+        volumes[p] = volume
+        weights[p] = max(volume - mask.sum(), 0.0)
+        verts.append(vertices)
     return Clusters(b, nb, pattern, weights, volumes, present.sum(axis=1).astype(np.int32), verts, centre, V)
 
 

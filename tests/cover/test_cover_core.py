@@ -101,6 +101,39 @@ def test_cluster_weight_is_translation_invariant_pattern():
     assert len(neighbour_offsets(2)) == 125
 
 
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000), st.integers(0, 2), st.integers(1, 40))
+def test_the_process_wide_pattern_hulls_give_the_clusters_of_a_fresh_process(seed, b, cap):
+    """Regression for the per-process cache of cluster-pattern hulls (shared by the tiles a worker builds): the
+    clusters of a grid are the same whether the cache is empty, warm from other grids (with other b), or so small
+    that it starts afresh in the middle of the grid."""
+    import polycc.cover.clusters as C
+
+    rng = np.random.default_rng(seed)
+    grids = [np.unique(rng.integers(0, 7, (rng.integers(5, 90), 3)), axis=0) for _ in range(3)]
+
+    def fields(cl):
+        return [cl.neighbours, cl.pattern, cl.weights, cl.volumes, cl.sizes, cl.centre] + list(cl.hull_vertices)
+
+    C._PATTERN_HULLS.clear()
+    fresh = fields(build_clusters(grids[0], b))
+    for g in grids[1:]:
+        build_clusters(g, (b + 1) % 3)
+        build_clusters(g, b)
+    warm = fields(build_clusters(grids[0], b))
+    old_max = C.PATTERN_HULLS_MAX
+    C.PATTERN_HULLS_MAX = cap
+    C._PATTERN_HULLS.clear()
+    try:
+        small = fields(build_clusters(grids[0], b))
+        assert len(C._PATTERN_HULLS) <= cap
+    finally:
+        C.PATTERN_HULLS_MAX = old_max
+        C._PATTERN_HULLS.clear()
+    for other in (warm, small):
+        assert len(other) == len(fresh) and all(np.array_equal(x, y) for x, y in zip(fresh, other))
+
+
 @settings(max_examples=25)
 @given(st.lists(st.tuples(*[st.integers(0, 7)] * 3), min_size=1, max_size=60, unique=True), st.integers(0, 2))
 def test_box_rows_are_exact_occupied_boxes(vox, b):
