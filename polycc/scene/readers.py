@@ -166,12 +166,11 @@ def read_ply(path: Path) -> RawSplats:
             f"{path}: the vertex element has no {'/'.join(missing_xyz)} property (it has: {', '.join(names[:12])}); "
             "polycc needs splat centres named x, y, z"
         )
-    pos = np.stack([np.asarray(v[a], np.float64) for a in ("x", "y", "z")], axis=1)
-
     scales = _suffix_sorted(names, "scale_")
     rots = _suffix_sorted(names, "rot_")
     gaussian_markers = bool(scales or rots or "opacity" in names)
     if not gaussian_markers:
+        pos = np.stack([np.asarray(v[a], np.float64) for a in ("x", "y", "z")], axis=1)
         radius = np.asarray(v["radius"], np.float64) if "radius" in names else np.zeros(n)
         return RawSplats(
             positions=pos,
